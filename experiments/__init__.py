@@ -1,0 +1,1 @@
+"""Runnable entry points: ``python -m experiments.forest`` (city, indoor) and ``python -m experiments.bench NAME``."""

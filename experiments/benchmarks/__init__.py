@@ -1,0 +1,1 @@
+"""One module per benchmark; each defines ``main(argv: list[str]) -> None`` and prints JSON lines via ``emit``."""
