@@ -11,6 +11,11 @@ A ``Cue`` is declarative and hashable (it lives in the static model definition).
 * its label rule: ``absorbing`` cues (collision) take the cumulative OR over the horizon and are
   trained on every step, even after the episode ended; all others are masked after the terminal
   step, the terminal step itself included,
+  With ``residual_frame='ego'`` (the default heading cue) the bounded change is expressed in the
+  car's frame at time t and rotated into the world: ``R(theta_t) @ ((1, 0) + scale * tanh(p))``.  The
+  output and the loss are the same world-frame quantities as the paper's (a rotation keeps squared
+  errors), but the network no longer has to learn the rotation by the current heading itself, which it
+  does poorly from a normalised angle input; ``HEADING_PAPER`` keeps the paper's additive form.
 * ``scale``: squared errors are computed on ``(prediction - label) / scale`` so cues of different
   units weigh alike (1 reproduces the paper).
 
@@ -38,6 +43,7 @@ class Cue:
     absorbing: bool = False
     anchor_key: str | None = None  # vector-state key anchoring a 'residual' activation
     residual_scale: float = 2.0
+    residual_frame: str = "world"  # 'world' (the paper's) or 'ego' (see the module docstring)
     scale: float = 1.0
 
     def __post_init__(self):
@@ -52,6 +58,8 @@ class Cue:
                 f"Cue {self.name!r}: activation 'residual' is for angle cues with an anchor_key "
                 f"(got kind={self.kind!r}, activation={self.activation!r}, anchor_key={self.anchor_key!r})"
             )
+        if self.residual_frame not in ("world", "ego"):
+            raise ValueError(f"Cue {self.name!r}: residual_frame must be 'world' or 'ego', got {self.residual_frame!r}")
         if self.absorbing and self.kind != "binary":
             raise ValueError(f"Cue {self.name!r}: only binary cues can be absorbing")
         if not self.scale > 0:
@@ -81,6 +89,11 @@ class Cue:
             out = jax.nn.sigmoid(raw)
         elif self.activation == "tanh":
             out = jnp.tanh(raw)
+        elif self.activation == "residual" and self.residual_frame == "ego":
+            change = self.residual_scale * jnp.tanh(raw)
+            ego_x, ego_y = 1.0 + change[..., 0], change[..., 1]
+            cos, sin = anchor[..., 0], anchor[..., 1]
+            out = jnp.stack([ego_x * cos - ego_y * sin, ego_x * sin + ego_y * cos], axis=-1)
         elif self.activation == "residual":
             out = self.residual_scale * jnp.tanh(raw) + anchor
         else:
@@ -120,7 +133,8 @@ class Cue:
 # and door cues come from a segmentation labeller (learned, or the oracle semantic map).
 COLLISION = Cue("collision", kind="binary", activation="sigmoid", absorbing=True)
 SPEED = Cue("speed", kind="scalar", activation="linear")
-HEADING = Cue("heading", kind="angle", activation="residual", anchor_key="heading", residual_scale=2.0)
+HEADING = Cue("heading", kind="angle", activation="residual", anchor_key="heading", residual_frame="ego")
+HEADING_PAPER = Cue("heading", kind="angle", activation="residual", anchor_key="heading", residual_frame="world")
 LANE_SEEN = Cue("lane_seen", kind="binary", activation="sigmoid")
 LANE_DIFF = Cue("lane_diff", kind="scalar", activation="tanh")
 DOOR_FRAC = Cue("door_frac", kind="scalar", activation="sigmoid", scale=0.1)

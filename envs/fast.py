@@ -202,24 +202,62 @@ def random_windows(env: FastEnv, key: jax.Array, task: FastTask, batch: int, hor
     cfg = env.config
     k_pose, k_speed, k_act = jax.random.split(key, 3)
     span = cfg.arena_half - cfg.car_radius - 0.2
-    xy = jax.random.uniform(k_pose, (batch, 2), minval=-span, maxval=span)
-    yaw = jax.random.uniform(jax.random.fold_in(k_pose, 1), (batch,), minval=-jnp.pi, maxval=jnp.pi)
+    # Window starts never lie on a terminal state: draw twice as many poses, keep collision-free ones
+    # first (static shapes: a stable sort on the collision flag instead of rejection sampling).
+    xy = jax.random.uniform(k_pose, (2 * batch, 2), minval=-span, maxval=span)
+    yaw = jax.random.uniform(jax.random.fold_in(k_pose, 1), (2 * batch,), minval=-jnp.pi, maxval=jnp.pi)
+    pose = jnp.concatenate([xy, yaw[:, None]], -1)
+    in_collision = jax.vmap(lambda p: collides(cfg, p, task))(pose)
+    pose = pose[jnp.argsort(in_collision, stable=True)[:batch]]
     speed = jax.random.uniform(k_speed, (batch,), minval=0.0, maxval=cfg.plan_speed[1])
     low, high = jnp.asarray(env.spec.plan_low), jnp.asarray(env.spec.plan_high)
     actions = jax.random.uniform(k_act, (batch, horizon, env.spec.action_dim), minval=low, maxval=high)
 
-    def one(xy, yaw, speed, acts):
-        car = CarState(pose=jnp.concatenate([xy, yaw[None]]), speed=speed)
-        collided = collides(cfg, car.pose, task)
-        image, vector, _ = env._observe(car, collided, task)
+    def one(pose, speed, acts):
+        car = CarState(pose=pose, speed=speed)
+        image, vector, _ = env._observe(car, jnp.zeros((), bool), task)
         obs = base.Observation(
             images=jnp.broadcast_to(image, (env.spec.history,) + image.shape),
             vector=jnp.broadcast_to(vector, (env.spec.history, vector.shape[0])),
         )
         future = simulate(cfg, car, acts, task)
         crashed_before = jnp.concatenate([jnp.zeros((1,), bool), future["collision"][:-1] > 0.5])
-        return obs, future, ~crashed_before & ~collided
+        return obs, future, ~crashed_before
 
-    obs, future, valid = jax.vmap(one)(xy, yaw, speed, actions)
+    obs, future, valid = jax.vmap(one)(pose, speed, actions)
     signals = {name: future[name] for name in env.spec.signal_names}
     return Batch(obs=obs, actions=actions, signals=signals, valid=valid)
+
+
+@dataclasses.dataclass(frozen=True)
+class FastOracle:
+    """An exact CAPs-style predictor of the fast world: the planner's model protocol without learning.
+
+    ``params`` is the ``FastTask`` (the oracle knows the obstacles); ``encode`` reads the car's pose and
+    speed from the newest vector frame; ``rollout`` simulates.  It isolates the planner and the reward
+    composition from model error in tests, and bounds what a learned model could achieve.
+    """
+
+    env: FastEnv
+
+    cue_names = ("collision", "speed", "heading")
+
+    @property
+    def action_low(self):
+        return self.env.spec.action_low
+
+    @property
+    def action_high(self):
+        return self.env.spec.action_high
+
+    horizon = None  # any horizon
+
+    def encode(self, params: FastTask, obs: base.Observation) -> CarState:
+        v = obs.vector[-1]
+        return CarState(pose=jnp.stack([v[3], v[4], v[1]]), speed=v[2])
+
+    def rollout(self, params: FastTask, carry: CarState, actions: jax.Array) -> dict:
+        out = simulate(self.env.config, carry, actions, params)
+        heading = out["heading"]
+        return {"collision": out["collision"], "speed": out["speed"],
+                "heading": jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1)}

@@ -1,0 +1,92 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import capsjax
+from capsjax import training
+from envs.base import wrap_angle
+from envs.fast import FastEnv, FastTask, random_windows
+
+ENV = FastEnv()
+# An open arena: collisions are with its walls, a known function of pose and actions (obstacle layouts
+# would take far more data to learn from (x, y) alone).
+TASK = FastTask(obstacles=jnp.array([[5.5, 5.5, 0.01]] * 4), start=jnp.zeros(3))
+MODEL = capsjax.CAPsModel(capsjax.ModelConfig.from_env_spec(
+    ENV.spec, conv=((16, 4, 2), (16, 3, 2)), obs_hidden=(64, 64), action_hidden=(16, 32), horizon=6))
+
+
+def test_per_tensor_clipping_clips_each_tensor_separately():
+    clip = training.clip_by_tensor_norm(1.0)
+    grads = {"a": jnp.array([3.0, 4.0]), "b": jnp.array([0.3, 0.4])}
+    out, _ = clip.update(grads, clip.init(grads))
+    np.testing.assert_allclose(out["a"], [0.6, 0.8], rtol=1e-6)
+    np.testing.assert_allclose(out["b"], [0.3, 0.4], rtol=1e-6)  # already under the norm: untouched
+
+
+def test_optimizer_options():
+    params = {"w": {"kernel": jnp.ones((2, 2))}, "b": jnp.ones(2)}
+    cfg = capsjax.TrainConfig(clip_tensor_norm=None, clip_global_norm=1.0, weight_decay=0.1, learning_rate=0.1)
+    opt = training.make_optimizer(cfg)
+    zero = jax.tree.map(jnp.zeros_like, params)
+    updates, _ = opt.update(zero, opt.init(params), params)
+    assert float(jnp.abs(updates["w"]["kernel"]).sum()) > 0  # decoupled decay acts on kernels
+    assert float(jnp.abs(updates["b"]).sum()) == 0  # ... and not on biases
+
+
+def test_bad_train_config_is_refused():
+    with pytest.raises(ValueError, match="learning_rate"):
+        capsjax.TrainConfig(learning_rate=0.0)
+    with pytest.raises(ValueError, match="clip_tensor_norm"):
+        capsjax.TrainConfig(clip_tensor_norm=-1.0)
+
+
+def test_loss_needs_every_cue_signal():
+    batch = random_windows(ENV, jax.random.key(1), TASK, 4, 6)
+    batch = batch.replace(signals={k: v for k, v in batch.signals.items() if k != "speed"})
+    with pytest.raises(ValueError, match="speed"):
+        capsjax.total_loss(MODEL, MODEL.init(jax.random.key(0)), batch)
+
+
+def test_learns_cues_of_actions_and_ranks_action_sequences():
+    data = random_windows(ENV, jax.random.key(1), TASK, 1024, 6)
+    cfg = capsjax.TrainConfig(learning_rate=3e-3, batch_size=64)
+
+    def sample(key):
+        idx = jax.random.randint(key, (cfg.batch_size,), 0, 1024)
+        return jax.tree.map(lambda x: x[idx], data)
+
+    state = capsjax.init_train_state(MODEL, cfg, jax.random.key(2))
+    loss0, metrics0 = capsjax.total_loss(MODEL, state.params, data)
+    train = capsjax.make_train(MODEL, cfg, sample, 250)
+    for _ in range(3):
+        state, _ = train(state)
+    loss, metrics = capsjax.total_loss(MODEL, state.params, data)
+    print({k: (float(metrics0[k]), float(metrics[k])) for k in metrics})
+    assert float(loss) < 0.15 * float(loss0)
+    for cue in ("speed", "heading"):  # exact functions of the actions: close to zero
+        assert float(metrics[f"loss/{cue}"]) < 0.1 * float(metrics0[f"loss/{cue}"])
+    assert int(state.step) == 750
+
+    # Ranking on fresh states: steering left vs right, fast vs slow, and who crashes.
+    test = random_windows(ENV, jax.random.key(7), TASK, 256, 6)
+    predict = jax.jit(jax.vmap(MODEL.predict, in_axes=(None, 0, 0)))
+    n = 256
+    left = jnp.tile(jnp.array([30.0, 1.5]), (n, 6, 1))
+    right = jnp.tile(jnp.array([-30.0, 1.5]), (n, 6, 1))
+    p_left, p_right = predict(state.params, test.obs, left), predict(state.params, test.obs, right)
+    turn = wrap_angle(jnp.arctan2(p_left["heading"][:, -1, 1], p_left["heading"][:, -1, 0])
+                      - jnp.arctan2(p_right["heading"][:, -1, 1], p_right["heading"][:, -1, 0]))
+    assert float(jnp.mean(turn > 0)) > 0.95
+    fast = predict(state.params, test.obs, jnp.tile(jnp.array([0.0, 2.0]), (n, 6, 1)))["speed"][:, -1]
+    slow = predict(state.params, test.obs, jnp.tile(jnp.array([0.0, 0.5]), (n, 6, 1)))["speed"][:, -1]
+    assert float(jnp.mean(fast > slow)) > 0.95
+    crash = predict(state.params, test.obs, test.actions)["collision"][:, -1]
+    crashed = np.asarray(test.signals["collision"].max(-1) > 0.5)
+    assert 0 < crashed.sum() < n
+    # AUC of the predicted crash probability against what really happened.
+    pos, neg = np.asarray(crash)[crashed], np.asarray(crash)[~crashed]
+    auc = np.mean(pos[:, None] > neg[None, :])
+    print("auc", auc)
+    assert auc > 0.85
