@@ -111,6 +111,11 @@ class Carry:
     anchors: jax.Array  # f32[num_heads]: the residual centre per head (0 for non-residual heads)
 
 
+def _sigmoid(x):
+    # Through tanh: one vectorised transcendental (XLA's CPU logistic costs an exp and a divide).
+    return 0.5 * jnp.tanh(0.5 * x) + 0.5
+
+
 def _truncated_normal(mean: float, std: float):
     def init(key, shape, dtype=jnp.float32):
         return mean + std * jax.random.truncated_normal(key, -2.0, 2.0, shape, dtype)
@@ -171,33 +176,41 @@ class _Network(nn.Module):
         return Carry(c=z[:units], h=z[units:], anchors=anchors)
 
     def rollout_raw(self, carry: Carry, actions: jax.Array) -> jax.Array:
-        """Pre-activations ``f32[H, num_heads]`` for one action sequence ``f32[H, A]``."""
+        """Pre-activations ``f32[..., H, num_heads]`` for action sequences ``f32[..., H, A]``.
+
+        Leading dims are candidates sharing one ``carry`` (the CNN ran once).  Internally time-major
+        ([H, M, .]) so each scan step reads one contiguous slab and no large transpose is needed.
+        """
         cfg = self.cfg
+        lead = actions.shape[:-2]
+        horizon = actions.shape[-2]
+        acts = jnp.moveaxis(actions.reshape((-1,) + actions.shape[-2:]), 1, 0)  # [H, M, A] (small)
         low = jnp.asarray(cfg.action_low, jnp.float32)
         high = jnp.asarray(cfg.action_high, jnp.float32)
-        x = (actions - 0.5 * (low + high)) / (high - low)  # full range, as the paper: in [-0.5, 0.5]
+        x = (acts - 0.5 * (low + high)) / (high - low)  # full range, as the paper: in [-0.5, 0.5]
         for dense in self.act_mlp:
             x = nn.relu(dense(x))
-        wx = x @ self.input_kernel  # [H, 4U], all steps in one matmul
-        # z = tanh(alpha*Wx*Uh + beta_h*Uh + beta_x*Wx + b) = tanh(scale_k * Uh + shift_k): fold the
-        # input-only parts outside the scan.
-        scale = self.alpha * wx + self.beta_h
-        shift = self.beta_x * wx + self.bias
-        recurrent = self.recurrent_kernel
+        wx = x @ self.input_kernel  # [H, M, 4U]: every step's input projection in one matmul
+        alpha, beta_h, beta_x, bias, recurrent = self.alpha, self.beta_h, self.beta_x, self.bias, self.recurrent_kernel
+        num = wx.shape[1]
 
-        def cell(state, inputs):
+        def cell(state, wx_k):
             c, h = state
-            sc, sh = inputs
-            z = jnp.tanh(sc * (h @ recurrent) + sh)
+            uh = h @ recurrent
+            # z = tanh(alpha*Wx*Uh + beta_h*Uh + beta_x*Wx + b); the Wx-only terms fuse into this loop
+            # body, so only Wx (not two derived arrays) streams from memory.
+            z = jnp.tanh((alpha * wx_k + beta_h) * uh + (beta_x * wx_k + bias))
             i, j, f, o = jnp.split(z, 4, axis=-1)
-            c = c * jax.nn.sigmoid(f + 1.0) + jax.nn.sigmoid(i) * jnp.tanh(j)
-            h = jnp.tanh(c) * jax.nn.sigmoid(o)
+            c = c * _sigmoid(f + 1.0) + _sigmoid(i) * jnp.tanh(j)
+            h = jnp.tanh(c) * _sigmoid(o)
             return (c, h), h
 
-        _, hs = jax.lax.scan(cell, (carry.c, carry.h), (scale, shift))  # [H, U]
-        hidden = nn.relu(hs @ self.head_kernel + self.head_bias)  # [H, heads*hidden]
-        hidden = hidden.reshape(hs.shape[0], cfg.num_heads, cfg.head_hidden)
-        return jnp.einsum("thk,hk->th", hidden, self.head_out_kernel) + self.head_out_bias
+        init = (jnp.broadcast_to(carry.c, (num, cfg.lstm_units)), jnp.broadcast_to(carry.h, (num, cfg.lstm_units)))
+        _, hs = jax.lax.scan(cell, init, wx)  # [H, M, U]
+        hidden = nn.relu(hs @ self.head_kernel + self.head_bias)  # [H, M, heads*hidden], all heads at once
+        hidden = hidden.reshape(hs.shape[:2] + (cfg.num_heads, cfg.head_hidden))
+        raw = jnp.einsum("tmhk,hk->mth", hidden, self.head_out_kernel) + self.head_out_bias  # [M, H, heads]
+        return raw.reshape(lead + (horizon, cfg.num_heads))
 
     def __call__(self, images, vector, actions):
         return self.rollout_raw(self.encode(images, vector), actions)
@@ -271,9 +284,11 @@ class CAPsModel:
         }
 
     def rollout(self, params, carry: Carry, actions: jax.Array) -> dict[str, jax.Array]:
-        """Predictions ``{cue: f32[H] (angles f32[H, 2])}`` for one action sequence ``f32[H, A]``.
+        """Predictions ``{cue: f32[..., H] (angles f32[..., H, 2])}`` for sequences ``f32[..., H, A]``.
 
-        Vmap it over candidate sequences with ``carry`` unbatched: the CNN is not recomputed.
+        Leading dims of ``actions`` are candidates sharing ``carry`` (one observation): pass all of a
+        planner's candidates at once (fastest), or vmap over them with ``carry`` unbatched; either way
+        the CNN is not recomputed.
         """
         return self.activate(self.rollout_raw(params, carry, actions), carry.anchors)
 

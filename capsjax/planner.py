@@ -106,7 +106,7 @@ def check_compatible(model, cfg: CEMConfig) -> None:
 
 def _score(model, params, carry, spec, seqs):
     """Reward of each candidate ``seqs f32[M, H, A]``; non-finite scores become -inf (never chosen)."""
-    preds = jax.vmap(model.rollout, in_axes=(None, None, 0))(params, carry, seqs)
+    preds = model.rollout(params, carry, seqs)  # every candidate in one batched, time-major rollout
     values = reward_lib.value(preds, seqs, spec)
     return jnp.where(jnp.isfinite(values), values, -jnp.inf), preds
 

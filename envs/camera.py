@@ -277,8 +277,6 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     inv_up = np.where(s > 0, 1.0 / np.where(s > 0, s, 1.0), 0.0).astype(np.float32)
     lx, ly, lz = _light(cfg)
 
-    # ---- obstacles: K nearest per column, then exact per-pixel tests against those K (unrolled),
-    # keeping the nearest surface so far: distance, class, albedo and Lambert term.
     # ---- ground and ceiling planes first (the camera height and pixel slopes are constants): they
     # seed the search below as surface codes GROUND / CEIL, obstacles then replace them where nearer.
     t_ground = np.where(s < 0, -z0 * inv_down, _BIG).astype(np.float32)
@@ -291,9 +289,18 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     if k_hits:
         ids = _nearest_ids(scene, cam, dx, dy, k_hits)  # [K, W]
 
-        def candidate(_, ids_k):
-            """Column data of the k-th nearest primitive and its hit distance at every pixel."""
+        def column(_, ids_k):
+            """Column data of the k-th nearest primitive of every column."""
             c = _column_data(scene, cam, dx, dy, ids_k, cfg)
+            # The camera data ride along, so that per-pixel code reads them from a buffer instead of
+            # re-evaluating cos/sin of the pose for every pixel.
+            return None, dict(c, dx=dx, dy=dy, cam_x=jnp.broadcast_to(cam[0], dx.shape),
+                              cam_y=jnp.broadcast_to(cam[1], dx.shape))
+
+        _, cand = jax.lax.scan(column, None, ids)  # [K, W] each
+
+        def candidate(_, c):
+            """The k-th nearest primitive of every column (values [W]) against every pixel."""
             hgt = c["height"]
             z_in = z0 + s * c["t_in"]  # ray height at the wall
             wall = c["valid"] & (z_in >= 0) & (z_in <= hgt)
@@ -307,26 +314,27 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
             # Box top: seen only from above, i.e. for boxes lower than the camera.
             t_top = (hgt - z0) * inv_down
             top = above & ~c["circ"] & (s < 0) & (t_top <= c["t_out"])
-            t_k = jnp.where(wall, c["t_in"], jnp.where(dome, t_dome, jnp.where(top, t_top, _BIG)))
-            return None, (t_k, c)
+            return None, jnp.where(wall, c["t_in"], jnp.where(dome, t_dome, jnp.where(top, t_top, _BIG)))
 
-        # A scan whose outputs are real buffers (one hit-distance plane per candidate, and the column
-        # data).  XLA on CPU otherwise fuses shared work into every consumer and recomputes it there
-        # (column math per pixel, the K tests per output channel): ~10x slower as plain Python code.
-        _, (t_k, cand) = jax.lax.scan(candidate, None, ids)
+        # Both loops are scans so that their inputs and outputs are real buffers: XLA on CPU otherwise
+        # fuses producers into every consumer and recomputes them there (the column math and cos/sin
+        # of the pose per pixel, the K tests per output channel), which was ~10x slower.
+        _, t_k = jax.lax.scan(candidate, None, cand)  # [K, H, W]
+        dx, dy, cam_x, cam_y = cand["dx"][0], cand["dy"][0], cand["cam_x"][0], cand["cam_y"][0]
         surface = jnp.where(t_ground <= t_ceil, _GROUND, _CEIL)
         for k in range(k_hits):
             closer = t_k[k] < t
             t, surface = jnp.where(closer, t_k[k], t), jnp.where(closer, k, surface)
     else:
         surface = jnp.where(t_ground <= t_ceil, _GROUND, _CEIL)
+        cam_x, cam_y = cam[0], cam[1]
 
     far_h = (cfg.far / stretch).astype(np.float32)  # the far plane as a horizontal distance
     hit = t <= far_h
     is_obj = hit & (surface >= 0)
     is_ground = hit & (surface == _GROUND)
     t = jnp.where(hit, t, 0.0)
-    px, py, pz = cam[0] + t * dx, cam[1] + t * dy, z0 + s * t
+    px, py, pz = cam_x + t * dx, cam_y + t * dy, z0 + s * t
 
     # ---- ground paint: later patches are drawn on top.
     ground_cls = jnp.broadcast_to(scene.ground_class.astype(jnp.int32), (h, w))
@@ -368,13 +376,9 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
         horizon = cfg.sky_horizon_color[i]
         sky = ((1 - elevation) * horizon + elevation * cfg.sky_zenith_color[i]).astype(np.float32)
         channels.append(jnp.where(hit, horizon + fog * (albedo * shade - horizon), sky))
-    # Interleave the channel planes into [H, W, C] with a tiny matmul (identity, or the grayscale
-    # weights): a dot is never fused with its producers on CPU, so the planes are computed as
-    # vectorised [H, W] loops; a transpose/stack here was fused into one scalar loop ~10x slower.
-    planes = jnp.stack([jnp.clip(ch, 0.0, 1.0) for ch in channels], 0)  # [3, H, W]
-    mix = np.asarray([[0.299], [0.587], [0.114]] if cfg.grayscale else np.eye(3), np.float32) * 255
-    image = jnp.einsum("chw,cd->hwd", planes, mix, precision=jax.lax.Precision.HIGHEST)
-    image = (image + 0.5).astype(jnp.uint8)
+    if cfg.grayscale:
+        channels = [0.299 * channels[0] + 0.587 * channels[1] + 0.114 * channels[2]]
+    image = jnp.stack([jnp.clip(ch * 255 + 0.5, 0.0, 255.0).astype(jnp.uint8) for ch in channels], -1)
     depth = jnp.where(hit, depth, cfg.far).astype(jnp.float32)
     return image, semantic.astype(jnp.uint8), depth
 

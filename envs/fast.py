@@ -257,7 +257,11 @@ class FastOracle:
         return CarState(pose=jnp.stack([v[3], v[4], v[1]]), speed=v[2])
 
     def rollout(self, params: FastTask, carry: CarState, actions: jax.Array) -> dict:
-        out = simulate(self.env.config, carry, actions, params)
+        """Like ``CAPsModel.rollout``: leading dims of ``actions`` are candidates."""
+        sim = lambda a: simulate(self.env.config, carry, a, params)
+        for _ in range(actions.ndim - 2):
+            sim = jax.vmap(sim)
+        out = sim(actions)
         heading = out["heading"]
         return {"collision": out["collision"], "speed": out["speed"],
                 "heading": jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1)}

@@ -146,7 +146,8 @@ def scene_geom_arrays(scene: Scene) -> dict:
 
 
 def _fmt(values) -> str:
-    return " ".join(f"{float(v):.6g}" for v in np.asarray(values).reshape(-1))
+    # 9 significant digits round-trip float32 exactly, so the MJCF and update_model_geometry agree.
+    return " ".join(f"{float(v):.9g}" for v in np.asarray(values, np.float32).reshape(-1))
 
 
 def scene_to_mjcf(scene: Scene, *, car_xml: str = "", extra_xml: str = "", name: str = "scene",
@@ -187,7 +188,7 @@ def scene_to_mjcf(scene: Scene, *, car_xml: str = "", extra_xml: str = "", name:
     if np.isfinite(ceiling):
         # A plane faces its local +z; turned 180 degrees about x it faces down at the ceiling height.
         lines.append(
-            f'    <geom name="ceiling" type="plane" size="0 0 1" pos="0 0 {ceiling:.6g}" quat="0 1 0 0" '
+            f'    <geom name="ceiling" type="plane" size="0 0 1" pos="0 0 {ceiling:.9g}" quat="0 1 0 0" '
             f'material="ceiling" contype="0" conaffinity="0" group="{SCENE_GEOM_GROUP}"/>'
         )
     lines += [car_xml, "  </worldbody>", extra_xml, "</mujoco>"]

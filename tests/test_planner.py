@@ -91,7 +91,7 @@ def test_capsjax_plan_is_compiled_once_for_many_weights():
 class _NaNForLeftTurns(FastOracle):
     def rollout(self, params, carry, actions):
         preds = super().rollout(params, carry, actions)
-        poison = jnp.where(actions[0, 0] > 0, jnp.nan, 0.0)
+        poison = jnp.where(actions[..., :1, 0] > 0, jnp.nan, 0.0)  # [..., 1]: whole sequence
         return {**preds, "collision": preds["collision"] + poison}
 
 

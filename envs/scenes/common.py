@@ -45,7 +45,7 @@ class SceneConfig:
     camera: CameraConfig = CameraConfig()
     steer_limit_deg: float = 45.0
     plan_steer_deg: float = 30.0
-    speed_limit: float = 4.0
+    speed_limit: float = 4.0  # m/s; also the speed range of the vector state's normalisation box
     plan_speed: tuple[float, float] = (0.5, 3.0)
     fixed_speed: float | None = None  # steering-only robot at this speed (A = 1)
     lookahead: float = 2.0  # m: the goal heading is the task's direction this far ahead of the car
@@ -68,7 +68,7 @@ class SceneEnv(base.Env, abc.ABC):
         # Slot counts of the family, from the layout's shapes (no layout is computed).
         shapes = jax.eval_shape(lambda k: self.layout(self.sample_task(k, "train")), jax.random.key(0))
         self.physics = CarPhysics(cfg.car, shapes.circles.shape[0], shapes.boxes.shape[0])
-        v = cfg.speed_limit if cfg.fixed_speed is None else max(abs(cfg.fixed_speed), 1e-3)
+        v = cfg.speed_limit  # the speed part of the vector box (and of the action box when speed is an action)
         steer = ("steer_deg",), (-cfg.steer_limit_deg,), (cfg.steer_limit_deg,), (-cfg.plan_steer_deg,), (cfg.plan_steer_deg,)
         if cfg.fixed_speed is None:
             speed = ("speed",), (-v,), (v,), (cfg.plan_speed[0],), (cfg.plan_speed[1],)
@@ -123,12 +123,12 @@ class SceneEnv(base.Env, abc.ABC):
         if "lane_seen" in self.extra_signals:
             from capsjax import labellers  # the oracle labeller on the true class map
 
-            seen, diff = labellers.lane_cues_from_mask(labellers.right_lane_mask(semantic, ROAD, LANE_LINE))
+            seen, diff = labellers.lane_cues(semantic, road_id=ROAD, line_id=LANE_LINE)
             out.update(lane_seen=jnp.asarray(seen, jnp.float32), lane_diff=jnp.asarray(diff, jnp.float32))
         if "door_frac" in self.extra_signals:
             from capsjax import labellers
 
-            out["door_frac"] = jnp.asarray(labellers.door_frac(semantic, DOOR), jnp.float32)
+            out["door_frac"] = jnp.asarray(labellers.door_frac(semantic, door_id=DOOR), jnp.float32)
         return out
 
     def controls(self, action: jax.Array) -> tuple[jax.Array, jax.Array]:

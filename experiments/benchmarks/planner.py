@@ -1,0 +1,126 @@
+"""``python -m experiments.bench planner``: CEM plan latency and FLOP efficiency at the paper's settings.
+
+The headline figure is ``planner.flop_efficiency``: the achieved GFLOP/s of a paper-config plan (an
+analytic count of the model's multiply-adds over all 7,168 candidate rollouts) divided by this
+machine's dense float32 matmul GFLOP/s measured in the same run, so the figure is comparable across
+machines and robust to a noisy neighbour.  Batched planning (many robots in one vmap) is reported as
+per-robot efficiency relative to one robot.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from capsjax import cues, planner
+from capsjax.model import CAPsModel, ModelConfig, rollout_flops
+from capsjax.reward import RewardSpec
+from envs.base import Observation
+from experiments.bench import emit
+
+# The paper's CARLA CAPs model: 50x100 grayscale, 9 vector entries, (steer, motor), five cues.
+PAPER_MODEL = ModelConfig(
+    image_shape=(50, 100, 1),
+    vector_keys=("coll", "coll_car", "coll_ped", "coll_oth", "heading", "speed", "accel_x", "accel_y", "accel_z"),
+    vector_low=(0, 0, 0, 0, -np.pi, -30, -100, -100, -100),
+    vector_high=(1, 1, 1, 1, np.pi, 30, 100, 100, 100),
+    action_low=(-1.0, -1.0),
+    action_high=(1.0, 1.0),
+    cues=(cues.COLLISION, cues.SPEED, cues.HEADING, cues.LANE_SEEN, cues.LANE_DIFF),
+)
+PAPER_CEM = planner.CEMConfig.paper(action_low=(-1.0, 0.3), action_high=(1.0, 1.0))
+
+
+def matmul_gflops(n: int = 2048, repeats: int = 10) -> float:
+    """Dense float32 matmul rate of this device (the reference for the efficiency ratio)."""
+    a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
+    b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
+    f = jax.jit(lambda a, b: a @ b)
+    f(a, b).block_until_ready()
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        f(a, b).block_until_ready()
+        times.append(time.perf_counter() - t)
+    return 2 * n**3 / np.median(times) / 1e9
+
+
+def _inputs(model: CAPsModel, robots: int | None):
+    cfg = model.config
+    key = jax.random.key(0)
+    images = jax.random.randint(key, (cfg.history,) + cfg.image_shape, 0, 256).astype(jnp.uint8)
+    obs = Observation(images, jnp.zeros((cfg.history, len(cfg.vector_keys)), jnp.float32))
+    spec = RewardSpec.from_terms(model, collision=50, speed=3, lane=5, steer=0.15, heading_angle=5,
+                                 goal_speed=7.0, goal_heading=(1.0, 0.0))
+    state = planner.init_plan_state(PAPER_CEM)
+    if robots is None:
+        return obs, spec, state
+    stack = lambda x: jnp.broadcast_to(x, (robots,) + jnp.shape(x))
+    return jax.tree.map(stack, obs), jax.tree.map(stack, spec), jax.tree.map(stack, state)
+
+
+def time_plans(model, params, robots: int | None, num_plans: int, cfg=PAPER_CEM):
+    """(compile seconds, per-call latencies in seconds) for ``num_plans`` calls."""
+    obs, spec, state = _inputs(model, robots)
+    if robots is None:
+        fn = lambda k: planner.jit_plan(model, params, obs, spec, state, k, cfg=cfg)
+        keys = jax.random.split(jax.random.key(1), num_plans + 1)
+    else:
+        fn = lambda k: planner.jit_plan_batch(model, params, obs, spec, state, k, cfg=cfg)
+        keys = jax.random.split(jax.random.key(1), (num_plans + 1, robots))
+    t = time.perf_counter()
+    jax.block_until_ready(fn(keys[0]))
+    compile_s = time.perf_counter() - t
+    latencies = []
+    for k in keys[1:]:
+        t = time.perf_counter()
+        jax.block_until_ready(fn(k))
+        latencies.append(time.perf_counter() - t)
+    return compile_s, np.asarray(latencies)
+
+
+def main(argv: list[str]) -> None:
+    parser = argparse.ArgumentParser(prog="python -m experiments.bench planner", description=__doc__)
+    parser.add_argument("--plans", type=int, default=50, help="timed single-robot plans (>= 50 for the p90)")
+    parser.add_argument("--batches", type=str, default="1,16,64", help="robot counts for batched planning")
+    parser.add_argument("--batch-plans", type=int, default=5, help="timed calls per robot count")
+    parser.add_argument("--gpu-robots", type=int, default=1024, help="robots for the GPU throughput figure")
+    args = parser.parse_args(argv)
+
+    model = CAPsModel(PAPER_MODEL)
+    params = model.init(jax.random.key(0))
+    cem = PAPER_CEM
+    candidates = cem.init_samples + (cem.iterations - 1) * cem.samples
+    flops = candidates * rollout_flops(model.config, cem.horizon)
+    context = dict(model="paper_carla", horizon=cem.horizon, candidates=candidates,
+                   cem=f"{cem.init_samples}+{cem.iterations - 1}x{cem.samples}/elites{cem.elites}")
+
+    reference = matmul_gflops()
+    emit("planner.matmul_gflops", reference, "GFLOP/s", matmul_n=2048)
+    compile_s, lat = time_plans(model, params, None, args.plans)
+    p50 = float(np.median(lat))
+    emit("planner.compile_s", compile_s, "s", **context)
+    emit("planner.plan_ms_p50", 1e3 * p50, "ms", plans=args.plans, **context)
+    emit("planner.plan_ms_p90", 1e3 * float(np.percentile(lat, 90)), "ms", plans=args.plans, **context)
+    emit("planner.candidates_per_s", candidates / p50, "1/s", **context)
+    gflops = flops / p50 / 1e9
+    emit("planner.plan_gflops", gflops, "GFLOP/s", flops_per_plan=flops, **context)
+    emit("planner.flop_efficiency", gflops / reference, "ratio", matmul_gflops=reference, **context)
+
+    per_robot_eff = {}
+    for robots in [int(b) for b in args.batches.split(",") if b]:
+        _, lat_b = time_plans(model, params, robots, args.batch_plans)
+        med = float(np.median(lat_b))
+        per_robot_eff[robots] = robots * flops / med / 1e9 / reference
+        emit(f"planner.batch{robots}_plan_ms", 1e3 * med, "ms", robots=robots, **context)
+        emit(f"planner.batch{robots}_flop_efficiency", per_robot_eff[robots], "ratio", robots=robots, **context)
+    if 1 in per_robot_eff and 64 in per_robot_eff:
+        emit("planner.batch64_relative_efficiency", per_robot_eff[64] / per_robot_eff[1], "ratio", **context)
+
+    if jax.devices()[0].platform == "gpu":
+        _, lat_g = time_plans(model, params, args.gpu_robots, args.batch_plans)
+        emit("planner.gpu_plans_per_s", args.gpu_robots / float(np.median(lat_g)), "plans/s",
+             robots=args.gpu_robots, **context)
