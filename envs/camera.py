@@ -6,11 +6,17 @@ plane is vertical, all pixels of one image column lie in one *vertical* half-pla
 single horizontal ray.  We therefore
 
 1. cast one 2-D ray per column against every circle (analytic ray-circle) and every oriented box (slab
-   test in the box frame) -> entry/exit distances, a [W, N] problem;
-2. keep the K nearest primitives of each column (``CameraConfig.max_hits``);
+   test in the box frame) -> entry distances, an [N, W] problem;
+2. keep the K nearest primitives of each column (``CameraConfig.max_hits``, an insertion network);
 3. per pixel, intersect the pixel's ray (known slope dz/dt over horizontal distance t) with those K
    candidates in the column's vertical plane -- wall face (z within [0, h] at the entry distance), the
-   capsule's top dome, a box top -- and with the ground / ceiling planes, and keep the nearest.
+   capsule's top dome, a box top -- and with the ground / ceiling planes, and keep the nearest;
+4. shade: class and colour of the chosen surface, ground paint looked up at the hit point, Lambert
+   term, a world-space checker texture and distance fog.
+
+Cost per pixel is O(K + patches), per column O(N); everything is float32 and elementwise over
+[H, W] / [K, W] arrays with W as the minor axis (what XLA vectorises), and the two loops over K are
+``lax.scan``s so their results are materialised once (see the comment in ``render``).
 
 Exactness.  Below the horizon a ray descends from the camera height, so at the nearest wall it is
 below that obstacle's top whenever the obstacle is taller than the camera: the nearest hit is exact.
@@ -283,6 +289,7 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     ceil = jnp.asarray(scene.ceiling_height, jnp.float32)
     t_ceil = jnp.where((s > 0) & jnp.isfinite(ceil), (ceil - z0) * inv_up, _BIG)
     t = jnp.minimum(t_ground, t_ceil)
+    surface = jnp.where(t_ground <= t_ceil, _GROUND, _CEIL)
 
     # ---- obstacles: the K nearest per column, tested exactly against every pixel.
     k_hits = min(cfg.max_hits, scene.circles.shape[0] + scene.boxes.shape[0])
@@ -300,7 +307,7 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
         _, cand = jax.lax.scan(column, None, ids)  # [K, W] each
 
         def candidate(_, c):
-            """The k-th nearest primitive of every column (values [W]) against every pixel."""
+            """Hit distance at every pixel of the k-th nearest primitive of each column ([W] values)."""
             hgt = c["height"]
             z_in = z0 + s * c["t_in"]  # ray height at the wall
             wall = c["valid"] & (z_in >= 0) & (z_in <= hgt)
@@ -316,27 +323,28 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
             top = above & ~c["circ"] & (s < 0) & (t_top <= c["t_out"])
             return None, jnp.where(wall, c["t_in"], jnp.where(dome, t_dome, jnp.where(top, t_top, _BIG)))
 
-        # Both loops are scans so that their inputs and outputs are real buffers: XLA on CPU otherwise
-        # fuses producers into every consumer and recomputes them there (the column math and cos/sin
-        # of the pose per pixel, the K tests per output channel), which was ~10x slower.
+        # Both loops are scans so that what they produce (column data, one distance plane per
+        # candidate) are real buffers.  XLA on CPU otherwise fuses producers into every consumer and
+        # recomputes them there (the column math and cos/sin of the pose per pixel, the K tests per
+        # output channel), which measured 5-10x slower.
         _, t_k = jax.lax.scan(candidate, None, cand)  # [K, H, W]
-        dx, dy, cam_x, cam_y = cand["dx"][0], cand["dy"][0], cand["cam_x"][0], cand["cam_y"][0]
-        surface = jnp.where(t_ground <= t_ceil, _GROUND, _CEIL)
         for k in range(k_hits):
             closer = t_k[k] < t
             t, surface = jnp.where(closer, t_k[k], t), jnp.where(closer, k, surface)
+        dx, dy, cam_x, cam_y = cand["dx"][0], cand["dy"][0], cand["cam_x"][0], cand["cam_y"][0]
     else:
-        surface = jnp.where(t_ground <= t_ceil, _GROUND, _CEIL)
         cam_x, cam_y = cam[0], cam[1]
 
+    # ---- per-pixel surface: distance t and code ``surface`` (candidate k, _GROUND or _CEIL).
     far_h = (cfg.far / stretch).astype(np.float32)  # the far plane as a horizontal distance
     hit = t <= far_h
     is_obj = hit & (surface >= 0)
     is_ground = hit & (surface == _GROUND)
     t = jnp.where(hit, t, 0.0)
     px, py, pz = cam_x + t * dx, cam_y + t * dy, z0 + s * t
+    depth = jnp.where(hit, t * stretch, cfg.far)
 
-    # ---- ground paint: later patches are drawn on top.
+    # Ground paint: later patches are drawn on top.
     ground_cls = jnp.broadcast_to(scene.ground_class.astype(jnp.int32), (h, w))
     ground_col = [scene.ground_color[i] for i in range(3)]
     for p in range(scene.patches.shape[0]):
@@ -345,9 +353,8 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
         ground_cls = jnp.where(inside, scene.patch_class[p], ground_cls)
         ground_col = [jnp.where(inside, scene.patch_color[p, i], ground_col[i]) for i in range(3)]
 
-    # ---- the chosen obstacle's column data, per pixel (a select chain over K: no gathers).
     if k_hits:
-        def attr(v):
+        def attr(v):  # the chosen candidate's column value per pixel (a select chain, no gather)
             out = v[0]
             for k in range(1, k_hits):
                 out = jnp.where(surface == k, v[k], out)
@@ -361,12 +368,10 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
                               jnp.where(attr(cand["circ"]), dome_light, lz))
     else:
         cls_obj, col_obj, light_obj = 0, [0.0] * 3, 0.0
-
     semantic = jnp.where(is_obj, cls_obj, jnp.where(is_ground, ground_cls, jnp.where(hit, CEILING, SKY)))
 
     # ---- colour: albedo x (ambient + Lambert) x checker, then fog toward the horizon colour.
     lambert = jnp.where(is_obj, light_obj, jnp.where(is_ground, max(lz, 0.0), cfg.ceiling_light))
-    depth = t * stretch
     shade = (cfg.ambient + (1 - cfg.ambient) * lambert) * (1 + cfg.texture_contrast * _checker(px, py, pz, cfg))
     fog = jnp.exp(depth * (-1.0 / cfg.fog_distance))
     elevation = np.clip(s * 2.0, 0.0, 1.0)
@@ -376,11 +381,10 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
         horizon = cfg.sky_horizon_color[i]
         sky = ((1 - elevation) * horizon + elevation * cfg.sky_zenith_color[i]).astype(np.float32)
         channels.append(jnp.where(hit, horizon + fog * (albedo * shade - horizon), sky))
-    if cfg.grayscale:
+    if cfg.grayscale:  # the paper's weights (caps-algorithm.md 8.2)
         channels = [0.299 * channels[0] + 0.587 * channels[1] + 0.114 * channels[2]]
     image = jnp.stack([jnp.clip(ch * 255 + 0.5, 0.0, 255.0).astype(jnp.uint8) for ch in channels], -1)
-    depth = jnp.where(hit, depth, cfg.far).astype(jnp.float32)
-    return image, semantic.astype(jnp.uint8), depth
+    return image, semantic.astype(jnp.uint8), depth.astype(jnp.float32)
 
 
 def mjx_ray_depth(mjx_model, mjx_data, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA, *,

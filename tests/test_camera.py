@@ -5,7 +5,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-import pytest
 from mujoco import mjx
 
 from envs import scene as S

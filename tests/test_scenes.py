@@ -1,0 +1,181 @@
+"""Every registered scene behind the env API: jit + vmap, shapes, no NaN, crashes end episodes,
+auto-reset, per-robot layouts under one compiled step, and bad input.
+
+Compiling an MJX step takes about a minute on a 2-core CPU, so each scene compiles exactly two functions
+(a batched reset and a batched auto-reset step) and every check of that scene reuses them.
+"""
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from envs import base
+from envs.car import CarState
+from envs.scenes.common import SceneState
+
+B = 2  # robots: 0 is put in front of an obstacle, 1 drives from its start
+
+
+def _front_of_first_box(state: base.EnvState, speed: float) -> CarState:
+    """Robot 0's car 0.3 m before the -x face of its scene's first box, driving into it."""
+    box = state.physics.scene.boxes[0, 0]
+    yaw = box[4]
+    d = jnp.stack([jnp.cos(yaw), jnp.sin(yaw)])
+    xy = box[:2] - (box[2] + 1.0 + 0.3) * d  # the chassis is 1 m long ahead of its centre
+    return CarState(qpos=jnp.concatenate([xy, yaw[None]]), qvel=jnp.concatenate([speed * d, jnp.zeros(1)]))
+
+
+@pytest.fixture(scope="module", params=envs.SCENES)
+def scene_run(request):
+    """Run one scene for a few steps and record everything the tests check."""
+    name = request.param
+    env = envs.make(name)
+    wrapped = base.VmapWrapper(base.AutoResetWrapper(env))
+    traces = []
+
+    def counted_step(state, action):
+        traces.append(1)  # runs only while tracing
+        return wrapped.step(state, action)
+
+    step = jax.jit(counted_step)
+    reset = jax.jit(wrapped.reset)
+    keys = jax.random.split(jax.random.key(0), B)
+    tasks = wrapped.sample_task(jax.random.split(jax.random.key(1), B))
+    state0 = reset(keys, tasks)
+
+    spec = env.spec
+    fixed = env.config.fixed_speed
+    speed = float(fixed) if fixed is not None else float(spec.plan_high[1])
+    car0 = _front_of_first_box(jax.tree.map(lambda x: x[0], state0), speed)
+    cars = jax.tree.map(lambda a, b: a.at[0].set(b), state0.physics.car, car0)
+    state = state0.replace(physics=state0.physics.replace(car=cars))
+
+    drive = np.zeros((B, spec.action_dim), np.float32)
+    if spec.action_dim == 2:
+        drive[:, 1] = speed
+    history = [state]
+    for i in range(10):
+        action = drive.copy()
+        if i == 1:
+            action[1, 0] = np.nan  # a NaN action must not poison the state
+        state = step(state, jnp.asarray(action))
+        history.append(state)
+    # A new batch of tasks (new layouts) through the same compiled step.
+    other = reset(keys, wrapped.sample_task(jax.random.split(jax.random.key(2), B)))
+    after_other = step(other, jnp.asarray(drive))
+    return dict(name=name, env=env, wrapped=wrapped, tasks=tasks, state0=state0, history=history,
+                traces=len(traces), other=other, after_other=after_other)
+
+
+def _finite(tree) -> bool:
+    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)]
+    return all(bool(jnp.all(jnp.isfinite(x))) for x in leaves)
+
+
+def test_shapes_and_no_nan(scene_run):
+    env, spec = scene_run["env"], scene_run["env"].spec
+    for state in scene_run["history"]:
+        assert state.obs.images.shape == (B, spec.history) + spec.image_shape
+        assert state.obs.images.dtype == jnp.uint8
+        assert state.obs.vector.shape == (B, spec.history, spec.vector_dim)
+        assert tuple(sorted(state.signals)) == tuple(sorted(spec.signal_names))
+        assert all(v.shape == (B,) for v in state.signals.values())
+        assert state.info["pose"].shape == (B, 3) and state.done.shape == (B,)
+        assert "goal_heading" in state.info
+        assert _finite(state)
+    assert not bool(jnp.any(scene_run["history"][-1].info["physics_overflow"]))
+    assert env.check_task(jax.tree.map(lambda x: x[0], scene_run["tasks"])) is None
+
+
+def test_signals_match_the_state(scene_run):
+    for state in scene_run["history"][1:]:
+        pose = state.info["pose"]
+        np.testing.assert_allclose(state.signals["heading"], pose[:, 2], atol=1e-6)
+        assert np.all(np.abs(np.asarray(pose[:, 2])) <= math.pi + 1e-6)
+        vel = state.physics.car.qvel
+        forward = vel[:, 0] * jnp.cos(pose[:, 2]) + vel[:, 1] * jnp.sin(pose[:, 2])
+        np.testing.assert_allclose(state.signals["speed"], forward, atol=1e-5)
+        # The newest vector frame is (collision, heading, speed) of the same instant.
+        newest = state.obs.vector[:, -1]
+        np.testing.assert_allclose(newest[:, 0], state.signals["collision"])
+        np.testing.assert_allclose(newest[:, 1], state.signals["heading"])
+        np.testing.assert_allclose(newest[:, 2], state.signals["speed"])
+
+
+def test_collision_ends_the_episode_and_auto_reset_restarts(scene_run):
+    history, state0 = scene_run["history"], scene_run["state0"]
+    done = np.array([bool(s.done[0]) for s in history])
+    assert done.any(), "driving into the first box must crash"
+    k = int(np.argmax(done))
+    crash = history[k]
+    assert float(crash.signals["collision"][0]) == 1.0
+    assert float(crash.metrics["crash"][0]) == 1.0
+    # The terminal state is returned as is; the next step starts the same task afresh.
+    fresh = history[k + 1]
+    assert not bool(fresh.done[0])
+    np.testing.assert_allclose(fresh.info["pose"][0], state0.info["pose"][0], atol=1e-6)
+    assert int(jnp.sum(fresh.obs.images[0, :-1])) == 0  # history padding restarts
+    # The other robot was not reset by robot 0's crash.
+    assert not bool(jnp.allclose(history[k + 1].info["pose"][1], state0.info["pose"][1]))
+
+
+def test_nan_action_is_flagged_and_harmless(scene_run):
+    after = scene_run["history"][2]
+    assert bool(after.info["action_invalid"][1]) and not bool(after.info["action_invalid"][0])
+    assert _finite(after)
+
+
+def test_two_seeds_two_layouts_one_compiled_step(scene_run):
+    scenes = scene_run["state0"].physics.scene
+    differ = [not np.allclose(np.asarray(getattr(scenes, f)[0]), np.asarray(getattr(scenes, f)[1]))
+              for f in ("circles", "boxes")]
+    assert any(differ)
+    other = scene_run["other"].physics.scene
+    assert not np.allclose(np.asarray(other.boxes), np.asarray(scenes.boxes)) or not np.allclose(
+        np.asarray(other.circles), np.asarray(scenes.circles))
+    assert scene_run["traces"] == 1
+    assert _finite(scene_run["after_other"])
+
+
+def test_train_and_eval_tasks_differ(scene_run):
+    env = scene_run["env"]
+    key = jax.random.key(5)
+    train, eval_ = env.sample_task(key, "train"), env.sample_task(key, "eval")
+    assert any(not np.allclose(np.asarray(a), np.asarray(b)) for a, b in zip(jax.tree.leaves(train), jax.tree.leaves(eval_)))
+    with pytest.raises(ValueError, match="split"):
+        env.sample_task(key, "test")
+
+
+# ------------------------------------------------------------------------------------------ bad input
+
+
+def test_unknown_names_and_fields():
+    with pytest.raises(ValueError, match="forest, city, indoor"):
+        envs.make("jungle")
+    with pytest.raises(ValueError, match="arena_half"):
+        envs.make("forest", arena_size=30.0)
+
+
+@pytest.mark.parametrize("name", envs.SCENES)
+def test_wrong_action_shape_and_task_shape(name):
+    env = envs.make(name)
+    task = env.sample_task(jax.random.key(0))
+    state = jax.eval_shape(env.reset, jax.random.key(0), task)  # trace only, no compilation
+    with pytest.raises(ValueError, match="action has shape"):
+        jax.eval_shape(env.step, state, jnp.zeros(env.spec.action_dim + 1))
+    field = jax.tree_util.tree_flatten_with_path(task)[0][0][0][0].name
+    bad = task.replace(**{field: jnp.zeros((3, 3), jnp.float32)})
+    with pytest.raises(ValueError, match=field):
+        env.check_task(bad)
+    with pytest.raises(ValueError, match=field):
+        jax.eval_shape(env.reset, jax.random.key(0), bad)
+
+
+def test_out_of_box_actions_are_clipped():
+    env = envs.make("forest")
+    action, invalid = base.sanitize_action(jnp.asarray([1000.0, -99.0]), env.spec)
+    np.testing.assert_allclose(action, [env.spec.action_high[0], env.spec.action_low[1]])
+    assert not bool(invalid)
