@@ -46,6 +46,7 @@ class CEMConfig:
     warm_start_std: float = 0.2  # std of warm-start samples, as a fraction of the box half-range
     return_mode: str = "best"
     optimizer: str = "cem"
+    candidate_chunk: int = 0  # candidates scored per sequential chunk; 0 = auto (256 on CPU, all on GPU)
 
     def __post_init__(self):
         low, high = tuple(self.action_low), tuple(self.action_high)
@@ -68,6 +69,8 @@ class CEMConfig:
             raise ValueError(f"CEMConfig.return_mode must be one of {RETURN_MODES}, got {self.return_mode!r}")
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"CEMConfig.optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
+        if self.candidate_chunk < 0:
+            raise ValueError(f"CEMConfig.candidate_chunk must be >= 0 (0 = auto), got {self.candidate_chunk}")
         if not self.cov_reg >= 0 or not self.warm_start_std > 0:
             raise ValueError("CEMConfig.cov_reg must be >= 0 and warm_start_std > 0")
 
@@ -104,11 +107,29 @@ def check_compatible(model, cfg: CEMConfig) -> None:
         raise ValueError(f"CEMConfig.horizon ({cfg.horizon}) exceeds the model's trained horizon ({max_h})")
 
 
-def _score(model, params, carry, spec, seqs):
+def _chunk_size(cfg: CEMConfig, num: int) -> int:
+    """Candidates per sequential chunk: on a CPU the LSTM's per-step working set must stay in cache
+    (measured: 4,096 candidates at once run 1.7x slower than 16 chunks of 256); accelerators want all."""
+    chunk = cfg.candidate_chunk or (256 if jax.default_backend() == "cpu" else num)
+    chunk = min(chunk, num)
+    while num % chunk:  # static shapes: use the largest divisor not above the request
+        chunk -= 1
+    return chunk
+
+
+def _score(model, params, carry, spec, seqs, cfg: CEMConfig):
     """Reward of each candidate ``seqs f32[M, H, A]``; non-finite scores become -inf (never chosen)."""
-    preds = model.rollout(params, carry, seqs)  # every candidate in one batched, time-major rollout
-    values = reward_lib.value(preds, seqs, spec)
-    return jnp.where(jnp.isfinite(values), values, -jnp.inf), preds
+    num = seqs.shape[0]
+    chunk = _chunk_size(cfg, num)
+
+    def value_of(batch):  # one batched, time-major rollout per chunk
+        return reward_lib.value(model.rollout(params, carry, batch), batch, spec)
+
+    if chunk == num:
+        values = value_of(seqs)
+    else:
+        values = jax.lax.map(value_of, seqs.reshape((num // chunk, chunk) + seqs.shape[1:])).reshape(num)
+    return jnp.where(jnp.isfinite(values), values, -jnp.inf)
 
 
 def _refit(elites: jax.Array, cfg: CEMConfig):
@@ -140,8 +161,7 @@ def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState,
     carry = model.encode(params, obs)  # once per observation; tiled implicitly by vmap below
 
     def score(flat):
-        values, preds = _score(model, params, carry, spec, flat.reshape(-1, horizon, adim))
-        return values, preds
+        return _score(model, params, carry, spec, flat.reshape(-1, horizon, adim), cfg)
 
     key_uniform, key_warm, key_iters = jax.random.split(key, 3)
     first = jax.random.uniform(key_uniform, (cfg.init_samples, dim), minval=low, maxval=high)
@@ -154,7 +174,7 @@ def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState,
         warm = warm.at[0].set(shifted)
         first = jnp.where(plan_state.has_previous, first.at[:n_warm].set(warm), first)
     first = jnp.clip(first, low, high)
-    values, _ = score(first)
+    values = score(first)
 
     if cfg.optimizer == "random" or cfg.iterations == 1:
         population, values = first, values
@@ -165,7 +185,7 @@ def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState,
         def iteration(carry_, key_i):
             mean_, factor_ = carry_
             pop = jnp.clip(_sample_gaussian(key_i, mean_, factor_, cfg.samples, cfg), low, high)
-            vals, _ = score(pop)
+            vals = score(pop)
             _, idx = jax.lax.top_k(vals, cfg.elites)
             return _refit(pop[idx], cfg), (pop, vals)
 
@@ -173,7 +193,7 @@ def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState,
         # All but the last iteration only refit; the last also returns its population for the choice.
         (mean, factor), _ = jax.lax.scan(iteration, (mean, factor), keys[:-1])
         population = jnp.clip(_sample_gaussian(keys[-1], mean, factor, cfg.samples, cfg), low, high)
-        values, _ = score(population)
+        values = score(population)
 
     top_values, top_idx = jax.lax.top_k(values, min(cfg.elites, values.shape[0]))
     if cfg.return_mode == "best":
@@ -200,10 +220,16 @@ def jit_plan(model, params, obs, spec, plan_state, key, *, cfg: CEMConfig):
 
 
 def plan_batch(model, params, obs, spec, plan_state, key, *, cfg: CEMConfig):
-    """``plan`` vmapped over robots: every argument but ``params`` has a leading robot axis."""
-    return jax.vmap(functools.partial(plan, model, cfg=cfg), in_axes=(None, 0, 0, 0, 0))(
-        params, obs, spec, plan_state, key
-    )
+    """``plan`` for many robots: every argument but ``params`` has a leading robot axis.
+
+    On an accelerator the robots are vmapped (one wide batch).  On a CPU one robot's plan already
+    keeps the cores busy and a wider batch only overflows the caches, so robots are mapped in
+    sequence (``lax.map``) and per-robot throughput stays that of a single robot.
+    """
+    one = lambda args: plan(model, params, *args, cfg=cfg)
+    robots = jax.tree.leaves(key)[0].shape[0] if jax.tree.leaves(key) else 1
+    batch_size = 1 if jax.default_backend() == "cpu" else robots
+    return jax.lax.map(one, (obs, spec, plan_state, key), batch_size=batch_size)
 
 
 jit_plan_batch = jax.jit(plan_batch, static_argnums=(0,), static_argnames=("cfg",))

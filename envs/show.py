@@ -1,10 +1,12 @@
-"""Pictures of a scene: ``python -m envs.show NAME [--seed S] [--split train|eval] [--out PATH]``.
+"""Pictures of a scene: ``python -m envs.show NAME [--seed S] [--split train|eval] [--out PATH] [--mjcf PATH]``.
 
 Writes one PNG: a bird's-eye view of the layout (ground paint, obstacles by semantic class, the task:
 forest path, city goal, halls route with its intersections and commands) with the trajectory of a
 short demo drive, above a strip of first-person frames and their semantic class maps.  The demo driver
 steers toward ``info['goal_heading']`` (a proportional controller, no collision avoidance), so it shows
-the task and the camera, not a policy.
+the task and the camera, not a policy.  ``--mjcf PATH`` also writes the layout with the car at its
+start as MJCF, for MuJoCo's own viewer (``python -m mujoco.viewer --mjcf PATH``); ``envs/assets/`` holds
+one per scene family, written this way with seed 0.
 """
 from __future__ import annotations
 
@@ -150,6 +152,17 @@ def show(name: str, *, seed: int = 0, split: str = "train", steps: int = 40, fra
     return out
 
 
+def scene_mjcf(name: str, *, seed: int = 0, split: str = "train", **overrides) -> str:
+    """The MJCF of scene ``name``'s layout for task ``seed`` with the car at its start pose."""
+    from envs.car import full_mjcf
+
+    env = envs.make(name, **overrides)
+    task = env.sample_task(jax.random.key(seed), split)
+    scene = jax.jit(env.layout)(task)
+    return full_mjcf(env.config.car, jax.tree.map(np.asarray, scene), np.asarray(env.start_pose(task)),
+                     name=f"{name}_{split}_{seed}")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m envs.show", description=__doc__.splitlines()[0])
     parser.add_argument("name", help=f"one of {', '.join(envs.SCENES)}")
@@ -158,9 +171,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=40, help="control steps of the demo drive")
     parser.add_argument("--frames", type=int, default=6, help="first-person frames in the strip")
     parser.add_argument("--out", default=None, help="PNG path (default results/show/NAME.png)")
+    parser.add_argument("--mjcf", default=None, help="also write the layout as MJCF to this path")
+    parser.add_argument("--no-picture", action="store_true", help="skip the PNG (with --mjcf)")
     args = parser.parse_args(argv)
     if args.name not in envs.SCENES:
         raise SystemExit(f"unknown scene {args.name!r}; valid scenes: {', '.join(envs.SCENES)}")
+    if args.mjcf:
+        os.makedirs(os.path.dirname(args.mjcf) or ".", exist_ok=True)
+        with open(args.mjcf, "w") as f:
+            f.write(scene_mjcf(args.name, seed=args.seed, split=args.split) + "\n")
+        print(args.mjcf)
+    if args.no_picture:
+        return
     print(show(args.name, seed=args.seed, split=args.split, steps=args.steps, frames=args.frames, out=args.out))
 
 

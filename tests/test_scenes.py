@@ -21,7 +21,7 @@ B = 2  # robots: 0 is put in front of an obstacle, 1 drives from its start
 
 def _front_of_first_box(state: base.EnvState, speed: float) -> CarState:
     """Robot 0's car 0.3 m before the -x face of its scene's first box, driving into it."""
-    box = state.physics.scene.boxes[0, 0]
+    box = state.physics.scene.boxes[0]
     yaw = box[4]
     d = jnp.stack([jnp.cos(yaw), jnp.sin(yaw)])
     xy = box[:2] - (box[2] + 1.0 + 0.3) * d  # the chassis is 1 m long ahead of its centre
@@ -70,9 +70,13 @@ def scene_run(request):
                 traces=len(traces), other=other, after_other=after_other)
 
 
-def _finite(tree) -> bool:
-    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)]
-    return all(bool(jnp.all(jnp.isfinite(x))) for x in leaves)
+def _finite(state: base.EnvState) -> bool:
+    """No NaN anywhere, and no inf outside the scene (whose open sky has ceiling_height = +inf)."""
+    def ok(tree, check):
+        return all(bool(jnp.all(check(x))) for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating))
+
+    rest = (state.physics.car, state.obs, state.signals, state.metrics, state.info, state.task, state.reward)
+    return ok(state, lambda x: ~jnp.isnan(x)) and ok(rest, jnp.isfinite)
 
 
 def test_shapes_and_no_nan(scene_run):
@@ -179,3 +183,18 @@ def test_out_of_box_actions_are_clipped():
     action, invalid = base.sanitize_action(jnp.asarray([1000.0, -99.0]), env.spec)
     np.testing.assert_allclose(action, [env.spec.action_high[0], env.spec.action_low[1]])
     assert not bool(invalid)
+
+
+@pytest.mark.parametrize("name", envs.SCENES)
+def test_saved_mjcf_assets_open_in_mujoco(name):
+    """envs/assets/<name>.xml (written by ``python -m envs.show NAME --mjcf``) is a valid family member."""
+    import os
+
+    import mujoco
+
+    path = os.path.join(os.path.dirname(envs.__file__), "assets", f"{name}.xml")
+    model = mujoco.MjModel.from_xml_path(path)
+    env = envs.make(name)
+    scene = jax.eval_shape(lambda k: env.layout(env.sample_task(k)), jax.random.key(0))
+    ceiling = int(name == "indoor")
+    assert model.ngeom == 1 + scene.circles.shape[0] + scene.boxes.shape[0] + ceiling + 1  # ground ... chassis

@@ -45,7 +45,7 @@ CITY_CAMERA = CameraConfig(width=100, height=50, grayscale=True, mount_height=1.
 @dataclasses.dataclass(frozen=True)
 class CityConfig(common.SceneConfig):
     camera: CameraConfig = CITY_CAMERA
-    car: CarConfig = CarConfig(near_circles=0, near_boxes=4)
+    car: CarConfig = CarConfig(near_circles=0, near_boxes=3)
     speed_limit: float = 10.0
     plan_speed: tuple[float, float] = (1.0, 10.0)
     target_speed: float = 7.0

@@ -41,7 +41,7 @@ _NUM_JUNCTIONS = 5
 @dataclasses.dataclass(frozen=True)
 class IndoorConfig(common.SceneConfig):
     camera: CameraConfig = HALL_CAMERA
-    car: CarConfig = CarConfig(near_circles=0, near_boxes=6, max_speed=1.0)
+    car: CarConfig = CarConfig(near_circles=0, near_boxes=4, max_speed=1.0)
     fixed_speed: float | None = 0.5
     speed_limit: float = 1.0
     half_x: float = 12.5  # half sizes of the loop's centreline rectangle (75 m around by default)
