@@ -27,7 +27,7 @@ distances) into those slots with ``envs.scene.update_model_geometry``.  This is 
 obstacles than slots lie within reach of the car during one control step; ``reach`` bounds how far the
 car can get and the step reports ``overflow`` when the slots did not cover everything within it.  The
 cost of physics is then independent of the scene size.  Contacts are frictionless (condim 1): only the
-normal force matters for a bumper, and it halves the constraint rows.
+normal force matters for a bumper, and it leaves one constraint row per contact point.
 
 Bumper.  ``collision`` is True when any chassis contact penetrates (dist < 0) at any collision pass of
 the control step.  MJX collides before it integrates, so the final position of a control step is
@@ -121,10 +121,14 @@ class CarState:
     qvel: jax.Array  # f32[3]: world vx, vy, yaw rate
 
 
-def car_xml(cfg: CarConfig) -> str:
-    """The chassis body.  priority=1 makes the chassis's condim=1 win over the obstacles' default."""
+def car_xml(cfg: CarConfig, pose=(0.0, 0.0, 0.0)) -> str:
+    """The chassis body at ``pose`` (x, y, yaw); its joints start at zero there.
+
+    priority=1 makes the chassis's condim=1 win over the obstacles' default condim.
+    """
+    x, y, yaw = (float(v) for v in np.asarray(pose))
     return (
-        f'    <body name="car" pos="0 0 {cfg.half_height:.6g}">\n'
+        f'    <body name="car" pos="{x:.6g} {y:.6g} {cfg.half_height:.6g}" euler="0 0 {math.degrees(yaw):.6g}">\n'
         '      <joint name="x" type="slide" axis="1 0 0"/>\n'
         '      <joint name="y" type="slide" axis="0 1 0"/>\n'
         '      <joint name="yaw" type="hinge" axis="0 0 1"/>\n'
@@ -154,10 +158,7 @@ def physics_mjcf(cfg: CarConfig, num_circles: int, num_boxes: int) -> str:
 
 def full_mjcf(cfg: CarConfig, scene: Scene, pose=(0.0, 0.0, 0.0), name: str = "scene") -> str:
     """A whole scene with the car at ``pose`` (for MuJoCo's viewer and for ``mjx.ray`` comparisons)."""
-    x, y, yaw = (float(v) for v in np.asarray(pose))
-    xml = car_xml(cfg).replace(f'pos="0 0 {cfg.half_height:.6g}"',
-                               f'pos="{x:.6g} {y:.6g} {cfg.half_height:.6g}" euler="0 0 {math.degrees(yaw):.6g}"')
-    return scene_to_mjcf(scene, car_xml=xml, extra_xml=option_xml(cfg), name=name)
+    return scene_to_mjcf(scene, car_xml=car_xml(cfg, pose), extra_xml=option_xml(cfg), name=name)
 
 
 class CarPhysics:

@@ -165,3 +165,18 @@ def test_action_box_must_match_the_model():
     spec = RewardSpec.from_terms(ORACLE, collision=1)
     with pytest.raises(ValueError, match="action_low has 1 entries"):
         planner.plan(ORACLE, ONE_OBSTACLE, obs, spec, planner.init_plan_state(cfg), jax.random.key(0), cfg=cfg)
+
+
+def test_plan_batch_equals_planning_each_robot():
+    n = 2
+    tasks = jax.tree.map(lambda x: jnp.stack([x] * n), ONE_OBSTACLE)
+    states = jax.vmap(ENV.reset)(jax.random.split(jax.random.key(0), n), tasks)
+    spec = RewardSpec.from_terms(ORACLE, collision=100, heading_cos=1, goal_heading=(0.0, 1.0))
+    specs = jax.tree.map(lambda x: jnp.stack([x] * n), spec)
+    ps = jax.tree.map(lambda x: jnp.stack([x] * n), planner.init_plan_state(CFG))
+    keys = jax.random.split(jax.random.key(3), n)
+    actions, _, _ = planner.jit_plan_batch(ORACLE, ONE_OBSTACLE, states.obs, specs, ps, keys, cfg=CFG)
+    for i in range(n):
+        obs_i = jax.tree.map(lambda x: x[i], states.obs)
+        single, _, _ = planner.jit_plan(ORACLE, ONE_OBSTACLE, obs_i, spec, planner.init_plan_state(CFG), keys[i], cfg=CFG)
+        np.testing.assert_allclose(actions[i], single, rtol=1e-4, atol=1e-4)
