@@ -206,7 +206,7 @@ class _Network(nn.Module):
             return (c, h), h
 
         init = (jnp.broadcast_to(carry.c, (num, cfg.lstm_units)), jnp.broadcast_to(carry.h, (num, cfg.lstm_units)))
-        _, hs = jax.lax.scan(cell, init, wx)  # [H, M, U]
+        _, hs = jax.lax.scan(cell, init, wx, unroll=True)  # [H, M, U]; unrolled: the horizon is short and static
         hidden = nn.relu(hs @ self.head_kernel + self.head_bias)  # [H, M, heads*hidden], all heads at once
         hidden = hidden.reshape(hs.shape[:2] + (cfg.num_heads, cfg.head_hidden))
         raw = jnp.einsum("tmhk,hk->mth", hidden, self.head_out_kernel) + self.head_out_bias  # [M, H, heads]

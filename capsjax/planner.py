@@ -46,7 +46,7 @@ class CEMConfig:
     warm_start_std: float = 0.2  # std of warm-start samples, as a fraction of the box half-range
     return_mode: str = "best"
     optimizer: str = "cem"
-    candidate_chunk: int = 0  # candidates scored per sequential chunk; 0 = auto (256 on CPU, all on GPU)
+    candidate_chunk: int = 0  # candidates scored per sequential chunk; 0 = auto (1024 on CPU, all on GPU)
 
     def __post_init__(self):
         low, high = tuple(self.action_low), tuple(self.action_high)
@@ -109,8 +109,9 @@ def check_compatible(model, cfg: CEMConfig) -> None:
 
 def _chunk_size(cfg: CEMConfig, num: int) -> int:
     """Candidates per sequential chunk: on a CPU the LSTM's per-step working set must stay in cache
-    (measured: 4,096 candidates at once run 1.7x slower than 16 chunks of 256); accelerators want all."""
-    chunk = cfg.candidate_chunk or (256 if jax.default_backend() == "cpu" else num)
+    (measured on the 2-core CPU: scoring 4,096 candidates at once 120 ms, in chunks of 1,024 78 ms, of
+    256 100 ms); accelerators want all at once."""
+    chunk = cfg.candidate_chunk or (1024 if jax.default_backend() == "cpu" else num)
     chunk = min(chunk, num)
     while num % chunk:  # static shapes: use the largest divisor not above the request
         chunk -= 1
