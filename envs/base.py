@@ -44,7 +44,7 @@ class Observation:
 class EnvState:
     """The full state of one robot's episode (batch dimensions in front when vmapped)."""
 
-    physics: Any  # mjx.Data for MJX scenes; the analytic car state for envs.fast
+    physics: Any  # the car and layout (envs.scenes.common.SceneState) or the analytic car (envs.fast)
     obs: Observation
     signals: dict  # name -> f32[] ground truth at this instant
     reward: jax.Array  # CAPs composes rewards from predictions; envs report 0 unless a task defines one
