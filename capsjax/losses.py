@@ -13,7 +13,6 @@ import jax.numpy as jnp
 from flax import struct
 
 
-
 @struct.dataclass
 class Batch:
     """Training windows: B sequences of horizon H.

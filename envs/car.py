@@ -305,16 +305,11 @@ def nearest_obstacles(scene: Scene, xy: jax.Array, num_circles: int, num_boxes: 
     """
     near = empty_scene(num_circles, num_boxes, 1)
     overflow = jnp.zeros((), bool)
-    if num_circles:
-        d = circle_distances(scene, xy)
-        neg, idx = jax.lax.top_k(-d, num_circles)
-        keep = -neg < _FAR
-        near = near.replace(circles=jnp.where(keep[:, None], scene.circles[idx], 0.0))
-        overflow |= jnp.sum(d < reach) > num_circles
-    if num_boxes:
-        d = box_distances(scene, xy)
-        neg, idx = jax.lax.top_k(-d, num_boxes)
-        keep = -neg < _FAR
-        near = near.replace(boxes=jnp.where(keep[:, None], scene.boxes[idx], 0.0))
-        overflow |= jnp.sum(d < reach) > num_boxes
+    for field, count, distances in (("circles", num_circles, circle_distances), ("boxes", num_boxes, box_distances)):
+        if count:
+            d = distances(scene, xy)
+            neg, idx = jax.lax.top_k(-d, count)
+            keep = -neg < _FAR
+            near = near.replace(**{field: jnp.where(keep[:, None], getattr(scene, field)[idx], 0.0)})
+            overflow |= jnp.sum(d < reach) > count
     return near, overflow

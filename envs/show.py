@@ -19,7 +19,7 @@ import numpy as np
 
 import envs
 from envs import base
-from envs.scene import CLASS_NAMES, NUM_CLASSES
+from envs.scene import CLASS_NAMES
 
 
 def demo_rollout(env, task, steps: int):

@@ -14,7 +14,6 @@ import pytest
 import envs
 from envs import base
 from envs.car import CarState
-from envs.scenes.common import SceneState
 
 B = 2  # robots: 0 is put in front of an obstacle, 1 drives from its start
 

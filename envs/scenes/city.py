@@ -112,9 +112,6 @@ class CityEnv(common.SceneEnv):
     def layout(self, task: CityTask) -> Scene:
         return city_layout(self.config, task.seed, task.start)
 
-    def start_pose(self, task: CityTask) -> jax.Array:
-        return jnp.asarray(task.start, jnp.float32)
-
     # ---------------------------------------------------------------- progress
 
     def task_init(self, task: CityTask, pose):

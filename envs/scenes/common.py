@@ -93,9 +93,9 @@ class SceneEnv(base.Env, abc.ABC):
     def layout(self, task: Any) -> Scene:
         """The scene of a task (pure JAX, fixed slot counts)."""
 
-    @abc.abstractmethod
     def start_pose(self, task: Any) -> jax.Array:
-        """f32[3] pose (x, y, yaw) at reset."""
+        """f32[3] pose (x, y, yaw) at reset: the task's ``start`` unless a scene derives it otherwise."""
+        return jnp.asarray(task.start, jnp.float32)
 
     @abc.abstractmethod
     def task_init(self, task: Any, pose: jax.Array) -> tuple[dict, dict]:

@@ -30,7 +30,6 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from envs import base
 from envs.camera import FOREST_CAMERA, CameraConfig
 from envs.scene import GRASS, ROCK, TREE, WALL, Scene, empty_scene
 from envs.scenes import common
@@ -91,9 +90,6 @@ class ForestEnv(common.SceneEnv):
 
     def layout(self, task: ForestTask) -> Scene:
         return forest_layout(self.config, task.seed, task.start)
-
-    def start_pose(self, task: ForestTask) -> jax.Array:
-        return jnp.asarray(task.start, jnp.float32)
 
     # ---------------------------------------------------------------- progress
 
