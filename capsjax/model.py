@@ -50,6 +50,12 @@ class ModelConfig:
     head_hidden: int = 16
 
     def __post_init__(self):
+        # Lists or arrays are accepted and stored as tuples: the config must hash (it is static).
+        for name in ("vector_low", "vector_high", "action_low", "action_high"):
+            object.__setattr__(self, name, tuple(float(x) for x in getattr(self, name)))
+        object.__setattr__(self, "image_shape", tuple(int(x) for x in self.image_shape))
+        object.__setattr__(self, "vector_keys", tuple(self.vector_keys))
+        object.__setattr__(self, "cues", tuple(self.cues))
         if len(self.image_shape) != 3 or min(self.image_shape) <= 0:
             raise ValueError(f"ModelConfig.image_shape must be (h, w, c) positive, got {self.image_shape}")
         if not (len(self.vector_low) == len(self.vector_high) == len(self.vector_keys)):

@@ -49,7 +49,11 @@ class CEMConfig:
     candidate_chunk: int = 0  # candidates scored per sequential chunk; 0 = auto (1024 on CPU, all on GPU)
 
     def __post_init__(self):
-        low, high = tuple(self.action_low), tuple(self.action_high)
+        # Lists or arrays are accepted and stored as float tuples: the config must hash (it is static).
+        low = tuple(float(x) for x in self.action_low)
+        high = tuple(float(x) for x in self.action_high)
+        object.__setattr__(self, "action_low", low)
+        object.__setattr__(self, "action_high", high)
         if len(low) == 0 or len(low) != len(high):
             raise ValueError(f"CEMConfig.action_low/high must be non-empty and of equal length, got {low} / {high}")
         if any(not lo < hi for lo, hi in zip(low, high)):

@@ -180,3 +180,8 @@ def test_plan_batch_equals_planning_each_robot():
         obs_i = jax.tree.map(lambda x: x[i], states.obs)
         single, _, _ = planner.jit_plan(ORACLE, ONE_OBSTACLE, obs_i, spec, planner.init_plan_state(CFG), keys[i], cfg=CFG)
         np.testing.assert_allclose(actions[i], single, rtol=1e-4, atol=1e-4)
+
+
+def test_lists_for_the_action_box_give_a_hashable_config():
+    cfg = planner.CEMConfig([-30, 0.5], np.array([30.0, 2.0]), horizon=4, init_samples=16, samples=16, elites=4)
+    assert cfg.action_low == (-30.0, 0.5) and hash(cfg) == hash(dataclasses.replace(cfg))
