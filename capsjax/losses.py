@@ -26,6 +26,10 @@ class Batch:
     actions: jax.Array  # f32[B, H, A]
     signals: dict  # name -> f32[B, H]
     valid: jax.Array  # bool[B, H]
+    # Optional extras for bootstrapped (Q-learning) baselines and goal relabelling; CAPs ignores them.
+    done: Any = None  # bool[B, H]: observation t+k+1 is its episode's terminal one
+    next_obs: Any = None  # the Observation history ending at t+1 (same shapes as ``obs``)
+    context: Any = None  # dict of per-window extras, e.g. 'pose' f32[B, 3] at t, 'final_xy' f32[B, 2]
 
 
 def l2_penalty(params, coeff: float) -> jax.Array:

@@ -1,12 +1,16 @@
-"""Closed-loop model-predictive control: plan, execute the first action, observe, repeat, all in one scan.
+"""Closed-loop control: act, execute, observe, repeat, all in one scan -- for CAPs and the baselines alike.
 
+A ``Policy`` is the one interface every method plugs into (CAPs MPC, the Q-learning baselines, a
+scripted driver): ``act(params, obs, spec, policy_state, key) -> (action, policy_state, info)`` with
+``info['value']`` the method's score of its choice (and, for predictive methods, ``info['preds']``).
 ``run_episode`` drives one robot for a fixed number of control steps under ``jax.lax.scan``; vmap it
 over robots (each with its own task, reward spec and key).  Once an episode is done the state is
 frozen, so fixed-length scans give exact episode metrics without host round trips.
 """
 from __future__ import annotations
 
-from typing import Callable
+import functools
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,36 +33,53 @@ class Trajectory:
     metrics: dict  # the env's running metrics after each step
 
 
+class Policy(NamedTuple):
+    """A controller: ``act(params, obs, spec, policy_state, key) -> (action, policy_state, info)``.
+
+    Static (hashable) so a jitted loop compiles once per policy; everything that varies (params, reward
+    weights and goals, keys) is an argument.
+    """
+
+    act: Callable
+    init_state: Callable[[], Any]
+
+
+def caps_policy(model, cfg: planner.CEMConfig) -> Policy:
+    """CAPs: CEM over action sequences scored by the predicted cues under the reward ``spec``.
+    ``model`` may be any predictor with ``encode``/``rollout`` (a ``CAPsModel`` or an exact oracle)."""
+    return Policy(act=functools.partial(planner.plan, model, cfg=cfg),
+                  init_state=functools.partial(planner.init_plan_state, cfg))
+
+
 def run_episode(
     env,
-    model,
+    policy: Policy,
     params,
     spec: RewardSpec,
     task,
     key: jax.Array,
     *,
-    cfg: planner.CEMConfig,
     num_steps: int,
     update_spec: Callable | None = None,
 ) -> Trajectory:
-    """One robot, ``num_steps`` MPC steps.  ``update_spec(state, spec) -> spec`` refreshes goals each step
-    (e.g. the path tangent ahead, or the direction to a goal); it must only change array values."""
+    """One robot, ``num_steps`` control steps.  ``update_spec(state, spec) -> spec`` refreshes goals each
+    step (e.g. the path tangent ahead, or the direction to a goal); it must only change array values."""
     reset_key, key = jax.random.split(key)
     state = env.reset(reset_key, task)
 
     def step(carry, step_key):
-        state, plan_state = carry
+        state, policy_state = carry
         step_spec = update_spec(state, spec) if update_spec is not None else spec
-        action, new_plan_state, info = planner.plan(model, params, state.obs, step_spec, plan_state, step_key, cfg=cfg)
+        action, new_policy_state, info = policy.act(params, state.obs, step_spec, policy_state, step_key)
         stepped = env.step(state, action)
         # Freeze finished episodes: same shapes, no host round trip.
         frozen = jax.tree.map(lambda a, b: jnp.where(state.done, a, b), state, stepped)
         record = Trajectory(
             pose=frozen.info["pose"], signals=frozen.signals, done=frozen.done, action=action,
-            value=info["value"], preds=info["preds"], metrics=frozen.metrics,
+            value=info["value"], preds=info.get("preds", {}), metrics=frozen.metrics,
         )
-        return (frozen, new_plan_state), record
+        return (frozen, new_policy_state), record
 
     keys = jax.random.split(key, num_steps)
-    _, trajectory = jax.lax.scan(step, (state, planner.init_plan_state(cfg)), keys)
+    _, trajectory = jax.lax.scan(step, (state, policy.init_state()), keys)
     return trajectory

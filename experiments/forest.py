@@ -112,7 +112,7 @@ def main(cfg: Config) -> dict:
         def one(task, goal, key):
             spec = capsjax.RewardSpec.from_terms(predictor, collision=500, heading_cos=1)
             toward = lambda state, spec: spec.with_goals(goal_heading=goal - state.info["pose"][:2])
-            return mpc.run_episode(env, predictor, params_for(task), spec, task, key, cfg=cem,
+            return mpc.run_episode(env, mpc.caps_policy(predictor, cem), params_for(task), spec, task, key,
                                    num_steps=cfg.eval_steps, update_spec=toward)
 
         return jax.jit(jax.vmap(one))(eval_tasks, goals, jax.random.split(jax.random.fold_in(eval_key, 2), n))
