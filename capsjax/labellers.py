@@ -1,18 +1,35 @@
-"""Cue labels from segmentation: the oracle rules on a semantic class map.
+"""Cue labels from segmentation: the oracle rules on a semantic class map, and learned labellers.
 
-The paper derives its lane and door cues from pixel masks (caps-algorithm.md section 8.3 and 8.4).
-Here the masks come either from the camera's ground-truth semantic map (the oracle, exact) or from the
-learned segmenter (later), and the same functions turn a mask into cues, so labeller quality can be
-measured against the oracle rather than assumed.
+The paper derives its lane and door cues from pixel masks (caps-algorithm.md sections 8.3 and 8.4).
+Here the masks come either from the camera's ground-truth semantic map (the oracle, exact) or from a
+learned segmenter, and the same functions turn a class map into cues (``cue_labels``), so labeller
+quality is measured against the oracle (``evaluate_labeller``) rather than assumed.
+
+Oracle rules (top of the module): pure ``jnp`` on a single map ``u8[h, w]``; jit and vmap them.
+
+Learned labeller (bottom): a compact fully convolutional encoder-decoder (``Segmenter``, Flax linen)
+separates a few classes from "other" -- the city's {other, road, lane_line}, so the *same*
+``right_lane_mask`` rule runs on the predicted map as on the true one; the halls' {other, door}.  It
+trains (``train_segmenter``) on the ground-truth maps of a small labelled fraction of frames with a
+class-balanced cross-entropy, optax Adam, all steps of a chunk under one jit.  ``make_cue_labeller``
+turns trained params into a jitted ``images u8[b, h, w, c] -> {cue: f32[b]}`` for (re)labelling
+datasets.  Why not the paper's FCN-16s on VGG-16: 134 M parameters pretrained on ImageNet do not train
+on a 2-core CPU, and the clean renders need far less (a few ten thousand parameters reach the targets).
 
 capsjax does not import ``envs``: class ids are arguments.  Envs pass ``envs.scene``'s constants
-(``ROAD``, ``LANE_LINE``, ``DOOR``), so there is one class table in the project.  Every function is
-pure ``jnp`` on a single map ``u8[h, w]``: jit it, vmap it over frames and robots.
+(``ROAD``, ``LANE_LINE``, ``DOOR``), so there is one class table in the project.
 """
 from __future__ import annotations
 
+import dataclasses
+import math
+from typing import Callable
+
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
+import optax
 
 ROAD_MIN_FRAC = 0.05  # the paper's rule: a lane mask needs > 5 % road pixels ...
 LINE_MIN_FRAC = 0.003  # ... and > 0.3 % lane-line pixels

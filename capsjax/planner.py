@@ -152,21 +152,21 @@ def _sample_gaussian(key, mean, factor, n, cfg: CEMConfig):
     return mean + (noise @ factor.T if cfg.covariance == "full" else noise * factor)
 
 
-def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState, key, *, cfg: CEMConfig):
-    """One MPC decision for one robot: ``(action f32[A], plan_state, info)``.
+def cem_search(score, key, plan_state: PlanState, *, cfg: CEMConfig):
+    """The sampling optimiser alone: ``(chosen f32[H, A], top_values f32[K])``.
 
-    ``info`` holds ``actions`` (the chosen sequence), ``preds`` (its predicted cues), ``value`` and
-    ``elite_value`` (mean reward of the last elites).
+    ``score(seqs f32[M, H, A]) -> f32[M]`` rates candidate sequences (higher is better); CAPs scores them
+    with predicted cues under a reward, the Q-learning baselines with their Q-function (H = 1).
+    Iteration 0 samples uniformly over the box (half around the previous plan with ``warm_start``), later
+    iterations from a Gaussian refitted to the elites; every sample is clipped to the box.
     """
-    check_compatible(model, cfg)
     horizon, adim = cfg.horizon, cfg.action_dim
     dim = horizon * adim
     low = jnp.tile(jnp.asarray(cfg.action_low, jnp.float32), horizon)
     high = jnp.tile(jnp.asarray(cfg.action_high, jnp.float32), horizon)
-    carry = model.encode(params, obs)  # once per observation; tiled implicitly by vmap below
 
-    def score(flat):
-        return _score(model, params, carry, spec, flat.reshape(-1, horizon, adim), cfg)
+    def score_flat(flat):
+        return score(flat.reshape(-1, horizon, adim))
 
     key_uniform, key_warm, key_iters = jax.random.split(key, 3)
     first = jax.random.uniform(key_uniform, (cfg.init_samples, dim), minval=low, maxval=high)
@@ -179,7 +179,7 @@ def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState,
         warm = warm.at[0].set(shifted)
         first = jnp.where(plan_state.has_previous, first.at[:n_warm].set(warm), first)
     first = jnp.clip(first, low, high)
-    values = score(first)
+    values = score_flat(first)
 
     if cfg.optimizer == "random" or cfg.iterations == 1:
         population, values = first, values
@@ -190,7 +190,7 @@ def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState,
         def iteration(carry_, key_i):
             mean_, factor_ = carry_
             pop = jnp.clip(_sample_gaussian(key_i, mean_, factor_, cfg.samples, cfg), low, high)
-            vals = score(pop)
+            vals = score_flat(pop)
             _, idx = jax.lax.top_k(vals, cfg.elites)
             return _refit(pop[idx], cfg), (pop, vals)
 
@@ -198,14 +198,25 @@ def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState,
         # All but the last iteration only refit; the last also returns its population for the choice.
         (mean, factor), _ = jax.lax.scan(iteration, (mean, factor), keys[:-1])
         population = jnp.clip(_sample_gaussian(keys[-1], mean, factor, cfg.samples, cfg), low, high)
-        values = score(population)
+        values = score_flat(population)
 
     top_values, top_idx = jax.lax.top_k(values, min(cfg.elites, values.shape[0]))
     if cfg.return_mode == "best":
         chosen = population[top_idx[0]]
     else:
         chosen = jnp.clip(population[top_idx].mean(0), low, high)
-    chosen = chosen.reshape(horizon, adim)
+    return chosen.reshape(horizon, adim), top_values
+
+
+def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState, key, *, cfg: CEMConfig):
+    """One MPC decision for one robot: ``(action f32[A], plan_state, info)``.
+
+    ``info`` holds ``actions`` (the chosen sequence), ``preds`` (its predicted cues), ``value`` and
+    ``elite_value`` (mean reward of the last elites).
+    """
+    check_compatible(model, cfg)
+    carry = model.encode(params, obs)  # once per observation; tiled implicitly by the batched rollout
+    chosen, top_values = cem_search(lambda seqs: _score(model, params, carry, spec, seqs, cfg), key, plan_state, cfg=cfg)
     preds = model.rollout(params, carry, chosen)
     chosen_value = reward_lib.value(preds, chosen, spec)
     info = {

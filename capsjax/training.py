@@ -3,10 +3,22 @@
 The paper's optimiser: Adam (lr 1e-4, eps 1e-4), gradients clipped *per tensor* to norm 10 (each
 variable separately, not the global norm), an L2 term scaled by 1 / #params.  Global-norm clipping and
 decoupled weight decay are options.
+
+Dependability (``fit``):
+* **NaN guard.** A step whose loss or any gradient is not finite leaves params and optimiser state
+  as they were and is counted (``TrainState.bad_steps``, ``consecutive_bad``); ``fit`` stops with
+  ``NonFiniteTrainingError`` after ``max_bad_steps`` in a row, without saving the bad state.
+* **Resume.** ``fit`` saves the whole ``TrainState`` every ``save_every`` steps with orbax
+  (``capsjax.checkpoint``) and restores the latest checkpoint when started again.  The sampler's
+  position is ``TrainState.key``: every batch is a pure function of the key split off it, so restoring
+  the key restores where the sampler was, and a resumed run continues exactly.
+* **Many devices.** With a ``mesh`` the batch is sharded over its devices and the state replicated;
+  the step is the same function and XLA inserts the gradient all-reduce (``capsjax.sharding``).
 """
 from __future__ import annotations
 
 import dataclasses
+import logging
 from typing import Callable
 
 import jax
@@ -15,6 +27,9 @@ import optax
 from flax import struct
 
 from capsjax import losses
+from capsjax import sharding as sharding_lib
+
+log = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,12 +56,22 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{name} must be positive or None, got {v}")
 
 
+def _zero_count():
+    return jnp.zeros((), jnp.int32)
+
+
 @struct.dataclass
 class TrainState:
     params: dict
     opt_state: optax.OptState
-    step: jax.Array  # i32[]
-    key: jax.Array
+    step: jax.Array  # i32[]: steps attempted (skipped non-finite steps included)
+    key: jax.Array  # the sampler's position: each step's batch is drawn from a key split off this one
+    bad_steps: jax.Array = struct.field(default_factory=_zero_count)  # i32[]: non-finite steps skipped
+    consecutive_bad: jax.Array = struct.field(default_factory=_zero_count)  # i32[]: ... in a row, now
+
+
+class NonFiniteTrainingError(RuntimeError):
+    """Too many non-finite training steps in a row; the state was not saved."""
 
 
 def clip_by_tensor_norm(max_norm: float) -> optax.GradientTransformation:
@@ -86,39 +111,149 @@ def init_train_state(model, cfg: TrainConfig, key: jax.Array) -> TrainState:
     return TrainState(params=params, opt_state=make_optimizer(cfg).init(params), step=jnp.zeros((), jnp.int32), key=key)
 
 
+def _all_finite(tree) -> jax.Array:
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
 def make_train_step(model, cfg: TrainConfig) -> Callable:
-    """``train_step(state, batch) -> (state, metrics)``: pure, jit it (or scan it) as you like."""
+    """``train_step(state, batch) -> (state, metrics)``: pure, jit it (or scan it) as you like.
+
+    A step whose loss or gradients are not finite is skipped (params and optimiser state unchanged)
+    and counted in ``bad_steps`` / ``consecutive_bad``; ``metrics['skipped']`` flags it.
+    """
     optimizer = make_optimizer(cfg)
 
     def train_step(state: TrainState, batch: losses.Batch):
         grad_fn = jax.value_and_grad(lambda p: losses.total_loss(model, p, batch, cfg.l2_coeff), has_aux=True)
-        (_, metrics), grads = grad_fn(state.params)
+        (loss, metrics), grads = grad_fn(state.params)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
+        finite = jnp.isfinite(loss) & _all_finite(grads)
+        # Select rather than branch: both sides are already computed and a select keeps one code path.
+        keep_new = lambda new, old: jnp.where(finite, new, old)
+        params = jax.tree.map(keep_new, params, state.params)
+        opt_state = jax.tree.map(keep_new, opt_state, state.opt_state)
+        bad = (~finite).astype(jnp.int32)
+        consecutive = jnp.where(finite, 0, state.consecutive_bad + 1)
         metrics["grad_norm"] = optax.global_norm(grads)
-        return state.replace(params=params, opt_state=opt_state, step=state.step + 1), metrics
+        metrics["skipped"] = ~finite
+        metrics["consecutive_bad"] = consecutive
+        return state.replace(params=params, opt_state=opt_state, step=state.step + 1,
+                             bad_steps=state.bad_steps + bad, consecutive_bad=consecutive), metrics
 
     return train_step
 
 
-def make_train(model, cfg: TrainConfig, sample_batch: Callable, num_steps: int) -> Callable:
+def make_train(model, cfg: TrainConfig, sample_batch: Callable, num_steps: int, *, mesh=None) -> Callable:
     """``train(state) -> (state, metrics[num_steps])``: ``num_steps`` steps under one jit (``lax.scan``).
 
     ``sample_batch(key) -> Batch`` draws a batch of ``cfg.batch_size`` windows (a pure function, e.g.
     a jitted window sampler over a device-resident buffer).  Call ``train`` repeatedly for logging or
     checkpointing between chunks.
+
+    With a ``mesh`` (``capsjax.sharding.make_mesh``) each batch is sharded over the mesh's devices
+    along its window axis and the state is replicated: the same step, data-parallel.
     """
-    if num_steps <= 0:
-        raise ValueError(f"num_steps must be positive, got {num_steps}")
+    if not isinstance(num_steps, int) or num_steps <= 0:
+        raise ValueError(f"num_steps must be a positive int, got {num_steps!r}")
     train_step = make_train_step(model, cfg)
+    if mesh is not None and cfg.batch_size % mesh.devices.size:
+        raise ValueError(
+            f"TrainConfig.batch_size ({cfg.batch_size}) must be a multiple of the mesh's {mesh.devices.size} devices"
+        )
 
     def body(state, _):
         key, batch_key = jax.random.split(state.key)
-        state, metrics = train_step(state.replace(key=key), sample_batch(batch_key))
+        batch = sample_batch(batch_key)
+        if mesh is not None:
+            batch = jax.lax.with_sharding_constraint(batch, sharding_lib.leading_sharding(mesh))
+        state, metrics = train_step(state.replace(key=key), batch)
         return state, metrics
 
-    @jax.jit
     def train(state: TrainState):
         return jax.lax.scan(body, state, None, length=num_steps)
 
-    return train
+    if mesh is None:
+        return jax.jit(train)
+    replicated = sharding_lib.replicated_sharding(mesh)
+    return jax.jit(train, in_shardings=replicated, out_shardings=replicated)
+
+
+def fit(
+    model,
+    cfg: TrainConfig,
+    sample_batch: Callable,
+    num_steps: int,
+    *,
+    key: jax.Array | None = None,
+    state: TrainState | None = None,
+    ckpt_dir=None,
+    save_every: int = 1000,
+    keep: int = 3,
+    max_bad_steps: int = 10,
+    mesh=None,
+    progress: bool = False,
+    metadata: dict | None = None,
+):
+    """Train to ``num_steps`` total steps, resumably: ``(state, metrics)`` with the last chunk's metrics.
+
+    The start is, in order of precedence: the latest checkpoint in ``ckpt_dir`` (a resumed run), else
+    ``state``, else a fresh ``init_train_state(model, cfg, key)``.  Steps run in chunks of up to
+    ``save_every`` under one jit (``make_train``); after each chunk the state is checked and, with a
+    ``ckpt_dir``, saved (orbax keeps the last ``keep``).  The model and train configs (and ``metadata``)
+    are saved beside each checkpoint and a checkpoint of another config is refused.
+
+    Raises ``NonFiniteTrainingError`` once ``max_bad_steps`` steps in a row had a non-finite loss or
+    gradient; the state of that chunk is not saved, so the last good checkpoint stays the latest.
+    """
+    from capsjax import checkpoint  # imported here: checkpoint.py imports this module
+
+    for name, value in (("num_steps", num_steps), ("save_every", save_every), ("keep", keep),
+                        ("max_bad_steps", max_bad_steps)):
+        if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+            raise ValueError(f"fit: {name} must be a positive int, got {value!r}")
+    if state is None:
+        state = init_train_state(model, cfg, key if key is not None else jax.random.key(0))
+    if mesh is not None:
+        state = sharding_lib.replicate(state, mesh)
+    manager = None
+    if ckpt_dir is not None:
+        manager = checkpoint.Checkpointer(ckpt_dir, save_every=save_every, keep=keep,
+                                          config=checkpoint.training_config(model, cfg, metadata))
+        if manager.latest_step() is not None:
+            state, restored = manager.restore(state)
+            log.info("resumed from step %d in %s", restored, ckpt_dir)
+    trains: dict[int, Callable] = {}  # one compiled chunk per distinct chunk length (at most two)
+    metrics = {}
+    bar = None
+    if progress:
+        import tqdm
+
+        bar = tqdm.tqdm(total=num_steps, initial=int(state.step), unit="step")
+    try:
+        while int(state.step) < num_steps:
+            done = int(state.step)
+            length = min(save_every - done % save_every, num_steps - done)  # end chunks on save points
+            if length not in trains:
+                trains[length] = make_train(model, cfg, sample_batch, length, mesh=mesh)
+            new_state, metrics = trains[length](state)
+            worst = int(jnp.max(metrics["consecutive_bad"]))
+            if worst >= max_bad_steps:
+                raise NonFiniteTrainingError(
+                    f"{worst} training steps in a row had a non-finite loss or gradient (max_bad_steps="
+                    f"{max_bad_steps}) between steps {done} and {int(new_state.step)}; stopped without saving, "
+                    f"the last good checkpoint is step {manager.latest_step() if manager else None}"
+                )
+            state = new_state
+            if manager is not None:
+                manager.save(int(state.step), state, force=int(state.step) == num_steps)
+            if bar is not None:
+                bar.update(length)
+                bar.set_postfix(loss=float(metrics["loss"][-1]), skipped=int(state.bad_steps))
+            log.info("step %d loss %.4g skipped %d", int(state.step), float(metrics["loss"][-1]), int(state.bad_steps))
+    finally:
+        if bar is not None:
+            bar.close()
+        if manager is not None:
+            manager.close()
+    return state, metrics
