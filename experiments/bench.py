@@ -16,7 +16,7 @@ import sys
 
 import jax
 
-BENCHMARKS = ("planner", "envs")
+BENCHMARKS = ("planner", "envs", "collect", "scale")
 
 
 def device_context() -> dict:

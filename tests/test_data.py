@@ -1,0 +1,283 @@
+"""capsjax.data: the crash-safe episode store, relabelling and the window sampler (hand-made episodes)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import zarr
+
+from capsjax import cues, data
+from envs.base import EnvSpec
+
+# One compiled function each for the module (eager mode would compile every primitive separately).
+SAMPLE = jax.jit(data.WindowSampler.sample, static_argnums=2)
+WINDOWS = jax.jit(data.WindowSampler.windows)
+
+SPEC = EnvSpec(
+    image_shape=(4, 6, 1), vector_keys=("collision", "heading", "speed"), vector_low=(0.0, -3.2, -4.0),
+    vector_high=(1.0, 3.2, 4.0), action_names=("steer", "speed"), action_low=(-45.0, -4.0), action_high=(45.0, 4.0),
+    plan_low=(-30.0, 0.5), plan_high=(30.0, 3.0), signal_names=("collision", "speed", "heading"),
+)
+
+
+def episode_batch(lengths, *, first_step=0, crash=None, labelled=()):
+    """Episodes whose every value encodes its global step index s (so any misalignment shows).
+
+    Step s: image filled with s % 251, vector (collision, s, -s), action (s, -s), pose (s, 2s, 0),
+    signals collision / speed = s / heading = -s; the terminal entry of a crash episode has collision 1.
+    """
+    n = int(sum(lengths))
+    s = np.arange(first_step, first_step + n)
+    ends = np.cumsum(lengths) - 1
+    done = np.zeros(n, bool)
+    done[ends] = True
+    collision = np.zeros(n, np.float32)
+    for j, crashed in enumerate(crash or [False] * len(lengths)):
+        if crashed:
+            collision[ends[j]] = 1.0
+    batch = {
+        "image": np.broadcast_to((s % 251).astype(np.uint8)[:, None, None, None], (n, 4, 6, 1)).copy(),
+        "vector": np.stack([collision, s, -s], -1).astype(np.float32),
+        "action": np.stack([s, -s], -1).astype(np.float32),
+        "done": done,
+        "pose": np.stack([s, 2 * s, 0 * s], -1).astype(np.float32),
+        "signal/collision": collision,
+        "signal/speed": s.astype(np.float32),
+        "signal/heading": -s.astype(np.float32),
+        "task": np.stack([np.arange(len(lengths)), np.arange(len(lengths))], -1).astype(np.uint32),
+    }
+    if labelled:
+        batch["labelled_index"] = np.asarray(labelled, np.int64)
+        batch["semantic"] = np.stack([np.full((4, 6), 7 + i, np.uint8) for i in range(len(labelled))])
+    return batch
+
+
+def make_dataset(path, lengths, crash=None, chunk_steps=8, labelled=()):
+    ds = data.Dataset.create(path, env_name="fast", env_config={"a": 1}, spec=SPEC, policy="test",
+                             chunk_steps=chunk_steps)
+    ds.append_episodes(episode_batch(lengths, crash=crash, labelled=labelled), lengths)
+    return ds
+
+
+def test_round_trip_and_append(tmp_path):
+    path = tmp_path / "d.zarr"
+    ds = make_dataset(path, [5, 7], labelled=(1, 9))
+    ds.append_episodes(episode_batch([4], first_step=12), [4])
+    ds = data.Dataset.open(path)
+    assert (ds.num_episodes, ds.num_steps, ds.num_labelled) == (3, 16, 2)
+    assert ds.env_name == "fast" and ds.spec == SPEC and ds.env_config == {"a": 1} and ds.policy == "test"
+    starts, lengths = ds.episode_bounds()
+    np.testing.assert_array_equal(starts, [0, 5, 12])
+    np.testing.assert_array_equal(lengths, [5, 7, 4])
+    ep = ds.read_episode(1)
+    expected = episode_batch([16])
+    for key in ("image", "vector", "action", "pose", "signal/speed", "signal/heading"):
+        np.testing.assert_array_equal(ep[key], expected[key][5:12])
+    np.testing.assert_array_equal(ep["done"], [False] * 6 + [True])
+    np.testing.assert_array_equal(ep["labelled_index"], [4])  # global step 9
+    steps, images, semantic = ds.labelled_frames()
+    np.testing.assert_array_equal(steps, [1, 9])
+    np.testing.assert_array_equal(images[:, 0, 0, 0], [1, 9])
+    np.testing.assert_array_equal(semantic[:, 0, 0], [7, 8])
+    got = np.concatenate([idx for idx, _ in ds.iter_images(5)])
+    np.testing.assert_array_equal(got, np.arange(16))
+    idx, imgs = zip(*ds.iter_images(3, episodes=[2]))
+    np.testing.assert_array_equal(np.concatenate(idx), np.arange(12, 16))
+    np.testing.assert_array_equal(np.concatenate(imgs)[:, 0, 0, 0], np.arange(12, 16))
+    with pytest.raises(ValueError, match="mode='a'"):
+        ds.append_episodes(episode_batch([3]), [3])
+
+
+def test_bad_input_is_refused(tmp_path):
+    path = tmp_path / "d.zarr"
+    ds = make_dataset(path, [5])
+    with pytest.raises(FileExistsError, match="already exists"):
+        make_dataset(path, [5])
+    bad = episode_batch([4])
+    del bad["pose"]
+    with pytest.raises(ValueError, match="'pose'"):
+        ds.append_episodes(bad, [4])
+    bad = episode_batch([4])
+    bad["done"][1] = True
+    with pytest.raises(ValueError, match="done"):
+        ds.append_episodes(bad, [4])
+    with pytest.raises(ValueError, match="shape"):
+        ds.append_episodes(episode_batch([4]), [5])
+    assert data.Dataset.open(path).num_steps == 5  # nothing was written by the refused calls
+    # Schema version: wrong, then missing.
+    zarr.open_group(path, mode="r+").attrs["schema_version"] = data.SCHEMA_VERSION + 1
+    with pytest.raises(ValueError, match=f"schema_version {data.SCHEMA_VERSION + 1}, expected {data.SCHEMA_VERSION}"):
+        data.Dataset.open(path)
+    group = zarr.open_group(path, mode="r+")
+    del group.attrs["schema_version"]
+    with pytest.raises(ValueError, match="no 'schema_version'"):
+        data.Dataset.open(path)
+
+
+def test_empty_dataset_and_horizon_too_long(tmp_path):
+    empty = data.Dataset.create(tmp_path / "e.zarr", env_name="fast", env_config={}, spec=SPEC, policy="test")
+    with pytest.raises(ValueError, match="empty"):
+        data.make_sampler(empty, horizon=3)
+    with pytest.raises(ValueError, match="empty"):
+        empty.split_episodes(0.2, seed=0)
+    ds = make_dataset(tmp_path / "d.zarr", [4, 6])
+    with pytest.raises(ValueError, match="horizon 6 .*longest has 6 entries.*horizon <= 5"):
+        data.make_sampler(ds, horizon=6)
+    data.make_sampler(ds, horizon=5)  # just fits
+
+
+def test_windows_follow_the_paper_done_handling(tmp_path):
+    # Episode 0 (steps 0-5) ends in a crash at its terminal entry; episode 1 (6-10) times out.
+    ds = make_dataset(tmp_path / "d.zarr", [6, 5], crash=[True, False])
+    sampler = data.make_sampler(ds, horizon=4)
+    np.testing.assert_array_equal(np.asarray(sampler.starts), [0, 1, 2, 3, 4, 6, 7, 8, 9])
+    batch = WINDOWS(sampler, jnp.array([3, 1, 8, 6]), jax.random.key(0))
+    # Window at t=3: observations 4, 5 are in the episode (5 is the terminal one), 6 and 7 are not.
+    np.testing.assert_array_equal(batch.valid[0], [True, True, False, False])
+    np.testing.assert_array_equal(batch.done[0], [False, True, False, False])
+    np.testing.assert_array_equal(batch.signals["speed"][0][:2], [4, 5])
+    target, mask = cues.COLLISION.labels(batch.signals["collision"], batch.valid)
+    np.testing.assert_array_equal(target[0, :, 0], [0, 1, 1, 1])  # absorbing after the crash
+    np.testing.assert_array_equal(mask[0], [1, 1, 1, 1])  # collision is never masked
+    np.testing.assert_array_equal(target[2, :, 0], [0, 0, 0, 0])  # a time-out stays 0 after the end
+    _, speed_mask = cues.SPEED.labels(batch.signals["speed"], batch.valid)
+    np.testing.assert_array_equal(speed_mask[0], [1, 1, 0, 0])
+    # Actions a_t..a_{t+H-1}: executed ones are recorded, the terminal entry's and later ones are random.
+    np.testing.assert_array_equal(batch.actions[0, :2, 0], [3, 4])
+    low, high = np.array(SPEC.plan_low), np.array(SPEC.plan_high)
+    pad = np.asarray(batch.actions[0, 2:])
+    assert np.all((pad >= low) & (pad <= high)) and not np.allclose(pad[0], pad[1])
+    np.testing.assert_array_equal(batch.actions[1, :, 0], [1, 2, 3, 4])
+    # History t-3..t, zeros before the episode start (window at t=1 and at t=6, the next episode's first).
+    np.testing.assert_array_equal(batch.obs.vector[0, :, 1], [0, 1, 2, 3])
+    np.testing.assert_array_equal(batch.obs.vector[1, :, 1], [0, 0, 0, 1])
+    np.testing.assert_array_equal(batch.obs.images[1, :, 0, 0, 0], [0, 0, 0, 1])
+    np.testing.assert_array_equal(batch.obs.vector[3, :, 1], [0, 0, 0, 6])
+    np.testing.assert_array_equal(batch.next_obs.vector[3, :, 1], [0, 0, 6, 7])
+    # Context: pose at t and the episode's final position (hindsight goals).
+    np.testing.assert_array_equal(batch.context["pose"][0], [3, 6, 0])
+    np.testing.assert_array_equal(batch.context["final_xy"][0], [5, 10])
+    np.testing.assert_array_equal(batch.context["final_xy"][2], [10, 20])
+
+
+def test_sampling_is_uniform_over_valid_starts_and_jittable(tmp_path):
+    ds = make_dataset(tmp_path / "d.zarr", [3, 9, 5, 2])
+    sampler = data.make_sampler(ds, horizon=2)
+    batch = SAMPLE(sampler, jax.random.key(0), 20_000)
+    t = np.asarray(batch.context["pose"][:, 0]).astype(int)  # pose x = global step
+    valid_starts = [0, 1, 3, 4, 5, 6, 7, 8, 9, 10, 12, 13, 14, 15, 17]
+    counts = np.bincount(t, minlength=19)
+    assert set(np.flatnonzero(counts)) == set(valid_starts)  # never a terminal entry
+    expected = 20_000 / len(valid_starts)
+    assert np.all(np.abs(counts[valid_starts] - expected) < 5 * np.sqrt(expected))
+    assert batch.obs.images.shape == (20_000, 4, 4, 6, 1) and batch.actions.shape == (20_000, 2, 2)
+
+
+def test_holdout_split_is_disjoint_by_episode(tmp_path):
+    ds = make_dataset(tmp_path / "d.zarr", [3] * 20)
+    train, holdout = ds.split_episodes(0.25, seed=1)
+    assert len(holdout) == 5 and len(train) == 15
+    assert not set(train) & set(holdout) and set(train) | set(holdout) == set(range(20))
+    assert np.array_equal(ds.split_episodes(0.25, seed=1)[1], holdout)
+    sampler = data.make_sampler(ds, horizon=2, episodes=holdout)
+    batch = SAMPLE(sampler, jax.random.key(0), 500)
+    episodes = np.asarray(batch.context["pose"][:, 0]).astype(int) // 3
+    assert set(episodes) <= set(holdout)
+
+
+def test_relabel_writes_labels_and_refuses_a_wrong_scene(tmp_path):
+    ds = make_dataset(tmp_path / "d.zarr", [5, 7])
+    brightness = lambda images: {"lane_seen": jnp.mean(images, axis=(1, 2, 3)) / 255.0}
+    labels = data.relabel(ds, brightness, "seg", batch_size=5, meta={"model": "v1"}, scene="fast")
+    np.testing.assert_allclose(labels["lane_seen"], np.arange(12) / 255.0, rtol=1e-6)
+    info = ds.label_info("seg")
+    assert ds.label_names == ("seg",)
+    assert info["meta"] == {"model": "v1", "scene": "fast"} and info["num_steps"] == 12
+    # Relabelling with a new labeller replaces the set; episodes are untouched.
+    data.relabel(ds, lambda im: {"lane_seen": jnp.ones(im.shape[0])}, "seg", batch_size=4, meta={"model": "v2"})
+    np.testing.assert_array_equal(data.Dataset.open(ds.path).read_labels("seg", "lane_seen"), np.ones(12))
+    np.testing.assert_array_equal(ds.read_episode(0)["signal/speed"], np.arange(5))
+    with pytest.raises(ValueError, match="scene is 'city'.*expected scene='fast'"):
+        data.relabel(ds, brightness, "seg", meta={}, scene="city")
+    # The sampler reads a cue from a label set instead of the recorded signals.
+    sampler = data.make_sampler(ds, horizon=3, label_sources={"lane_seen": "seg"})
+    batch = WINDOWS(sampler, jnp.array([0]), jax.random.key(0))
+    np.testing.assert_array_equal(batch.signals["lane_seen"][0], [1, 1, 1])
+    with pytest.raises(ValueError, match="no label set 'nope'"):
+        data.make_sampler(ds, horizon=3, label_sources={"lane_seen": "nope"})
+    with pytest.raises(ValueError, match=r"labels\['x'\] has shape"):
+        ds.write_labels("bad", {"x": np.zeros(3)}, meta={})
+
+
+def _chunk_file(path, array, chunk):
+    return os.path.join(path, array, "c", str(chunk), *(["0"] * (zarr.open_array(os.path.join(path, array)).ndim - 1)))
+
+
+def test_corrupted_and_truncated_chunks_are_reported_with_their_episodes(tmp_path):
+    path = str(tmp_path / "d.zarr")
+    ds = make_dataset(path, [5, 7, 6, 6], chunk_steps=8)  # episodes at steps 0-4, 5-11, 12-17, 18-23
+    assert ds.verify() == []
+    # Flip a byte in image chunk 1 (steps 8-15: episodes 1 and 2); truncate speed chunk 2 (16-23: 2, 3).
+    f = _chunk_file(path, "steps/image", 1)
+    with open(f, "rb") as fh:
+        raw = bytearray(fh.read())
+    raw[len(raw) // 2] ^= 0xFF
+    with open(f, "wb") as fh:
+        fh.write(bytes(raw))
+    os.truncate(_chunk_file(path, "steps/signal/speed", 2), 5)
+    report = {(c.field, c.chunk): c.episodes for c in data.Dataset.open(path).verify()}
+    assert report == {("steps/image", 1): (1, 2), ("steps/signal/speed", 2): (2, 3)}
+    ds = data.Dataset.open(path)
+    np.testing.assert_array_equal(ds.read_episode(0)["image"][:, 0, 0, 0], np.arange(5))  # the rest is usable
+    with pytest.warns(RuntimeWarning, match=r"skipping 3 episode\(s\).*\[1, 2, 3\]"):
+        sampler = data.make_sampler(ds, horizon=2)
+    np.testing.assert_array_equal(np.asarray(sampler.vector[:, 1]), np.arange(5))
+
+
+WRITER = textwrap.dedent("""
+    import sys, time
+    sys.path.insert(0, {root!r})
+    from tests.test_data import episode_batch
+    from capsjax import data
+    ds = data.Dataset.open({path!r}, "a")
+    while True:
+        lengths = [3 + ds.num_episodes % 4, 5]
+        ds.append_episodes(episode_batch(lengths, first_step=ds.num_steps), lengths)
+""")
+
+
+def test_sigkill_mid_write_keeps_committed_episodes_and_resumes(tmp_path):
+    path = str(tmp_path / "d.zarr")
+    make_dataset(path, [5], chunk_steps=4)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.Popen([sys.executable, "-c", WRITER.format(root=root, path=path)])
+    try:
+        deadline = time.time() + 60
+        while data.Dataset.open(path).num_episodes < 12 and time.time() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.13)  # land somewhere inside a later append
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    ds = data.Dataset.open(path)
+    assert ds.num_episodes >= 12
+    assert ds.verify() == []
+    starts, lengths = ds.episode_bounds()
+    assert starts[-1] + lengths[-1] == ds.num_steps
+    every = np.concatenate([ds.read_episode(i)["vector"][:, 1] for i in range(ds.num_episodes)])
+    np.testing.assert_array_equal(every, np.arange(ds.num_steps))  # every committed step, in order
+    # Re-running appends after the last committed episode (anything half-written is overwritten).
+    before = ds.num_steps
+    ds = data.Dataset.open(path, "a")
+    ds.append_episodes(episode_batch([4], first_step=before), [4])
+    ds = data.Dataset.open(path)
+    assert ds.num_steps == before + 4 and ds.verify() == []
+    np.testing.assert_array_equal(ds.read_episode(ds.num_episodes - 1)["vector"][:, 1], np.arange(before, before + 4))
