@@ -269,6 +269,8 @@ class CAPsModel:
         want_images = (cfg.history,) + tuple(cfg.image_shape)
         if tuple(obs.images.shape) != want_images or obs.images.dtype != jnp.uint8:
             raise ValueError(f"obs.images must be uint8{list(want_images)}, got {obs.images.dtype}{list(obs.images.shape)}")
+        if not jnp.issubdtype(obs.vector.dtype, jnp.floating):
+            raise ValueError(f"obs.vector must be a float array (float32), got {obs.vector.dtype}")
         want_vector = (cfg.history, len(cfg.vector_keys))
         if tuple(obs.vector.shape) != want_vector:
             raise ValueError(f"obs.vector must have shape {want_vector} (keys {cfg.vector_keys}), got {tuple(obs.vector.shape)}")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -73,10 +74,12 @@ class CEMConfig:
             raise ValueError(f"CEMConfig.return_mode must be one of {RETURN_MODES}, got {self.return_mode!r}")
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"CEMConfig.optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
-        if self.candidate_chunk < 0:
-            raise ValueError(f"CEMConfig.candidate_chunk must be >= 0 (0 = auto), got {self.candidate_chunk}")
-        if not self.cov_reg >= 0 or not self.warm_start_std > 0:
-            raise ValueError("CEMConfig.cov_reg must be >= 0 and warm_start_std > 0")
+        if not isinstance(self.candidate_chunk, int) or self.candidate_chunk < 0:
+            raise ValueError(f"CEMConfig.candidate_chunk must be an int >= 0 (0 = auto), got {self.candidate_chunk!r}")
+        for name, low in (("cov_reg", 0.0), ("warm_start_std", None)):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or (v < low if low is not None else v <= 0):
+                raise ValueError(f"CEMConfig.{name} must be a finite number {'>= 0' if low is not None else '> 0'}, got {v!r}")
 
     @property
     def action_dim(self) -> int:

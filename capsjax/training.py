@@ -18,6 +18,7 @@ Dependability (``fit``):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from typing import Callable
 
@@ -46,8 +47,8 @@ class TrainConfig:
 
     def __post_init__(self):
         for name in ("learning_rate", "adam_eps"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"TrainConfig.{name} must be positive, got {getattr(self, name)}")
+            if not 0 < getattr(self, name) < float("inf"):
+                raise ValueError(f"TrainConfig.{name} must be positive and finite, got {getattr(self, name)}")
         if self.batch_size <= 0:
             raise ValueError(f"TrainConfig.batch_size must be positive, got {self.batch_size}")
         for name in ("clip_tensor_norm", "clip_global_norm"):
@@ -105,9 +106,15 @@ def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
     return optax.chain(*parts)
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _init_params(model, key):
+    # Jitted (once per model definition): one compile instead of hundreds of eagerly dispatched ops.
+    return model.init(key)
+
+
 def init_train_state(model, cfg: TrainConfig, key: jax.Array) -> TrainState:
     init_key, key = jax.random.split(key)
-    params = model.init(init_key)
+    params = _init_params(model, init_key)
     return TrainState(params=params, opt_state=make_optimizer(cfg).init(params), step=jnp.zeros((), jnp.int32), key=key)
 
 
@@ -179,6 +186,13 @@ def make_train(model, cfg: TrainConfig, sample_batch: Callable, num_steps: int, 
     return jax.jit(train, in_shardings=replicated, out_shardings=replicated)
 
 
+@functools.lru_cache(maxsize=32)
+def _cached_train(model, cfg, sample_batch, length, mesh):
+    # Repeated ``fit`` calls with the same model, config and sampler (resuming, evaluating in between)
+    # reuse one compiled chunk instead of compiling a fresh closure each time.
+    return make_train(model, cfg, sample_batch, length, mesh=mesh)
+
+
 def fit(
     model,
     cfg: TrainConfig,
@@ -223,7 +237,6 @@ def fit(
         if manager.latest_step() is not None:
             state, restored = manager.restore(state)
             log.info("resumed from step %d in %s", restored, ckpt_dir)
-    trains: dict[int, Callable] = {}  # one compiled chunk per distinct chunk length (at most two)
     metrics = {}
     bar = None
     if progress:
@@ -234,9 +247,7 @@ def fit(
         while int(state.step) < num_steps:
             done = int(state.step)
             length = min(save_every - done % save_every, num_steps - done)  # end chunks on save points
-            if length not in trains:
-                trains[length] = make_train(model, cfg, sample_batch, length, mesh=mesh)
-            new_state, metrics = trains[length](state)
+            new_state, metrics = _cached_train(model, cfg, sample_batch, length, mesh)(state)
             worst = int(jnp.max(metrics["consecutive_bad"]))
             if worst >= max_bad_steps:
                 raise NonFiniteTrainingError(
