@@ -362,7 +362,8 @@ def make_train_step(agent: BaselineAgent, train_cfg: training.TrainConfig) -> Ca
 
 def make_offline_train(agent: BaselineAgent, train_cfg: training.TrainConfig, sample_batch: Callable,
                        num_steps: int) -> Callable:
-    """``train(state) -> (state, metrics[num_steps])``: gradient steps on stored data under one jit.
+    """``train(state) -> (state, metrics[num_steps])``: jitted gradient steps on stored data
+    (``training.repeat_steps``: one scan on accelerators, a host loop of jitted steps on CPU).
 
     ``sample_batch(key) -> losses.Batch`` (horizon >= 1, with ``done``/``next_obs``/``context``), e.g.
     ``lambda k: sampler.sample(k, 32)`` of ``capsjax.data.make_sampler``.  The target is copied every
@@ -377,7 +378,7 @@ def make_offline_train(agent: BaselineAgent, train_cfg: training.TrainConfig, sa
         new, metrics = step_fn(state.replace(key=key), tr, k_target)
         return sync_target(new, state.step, new.step, agent.config.target_every), metrics
 
-    return jax.jit(lambda state: jax.lax.scan(body, state, None, length=num_steps))
+    return training.repeat_steps(body, num_steps)
 
 
 def baseline_policy(agent: BaselineAgent, cem_cfg: planner.CEMConfig) -> mpc.Policy:
