@@ -31,6 +31,7 @@ class Trajectory:
     value: jax.Array  # f32[T]: the planner's predicted reward of the chosen sequence
     preds: dict  # the chosen sequence's predicted cues, name -> f32[T, H(, 2)]
     metrics: dict  # the env's running metrics after each step
+    image: jax.Array | None = None  # u8[T, h, w, c]: the camera frame each decision saw (record_images)
 
 
 class Policy(NamedTuple):
@@ -61,9 +62,11 @@ def run_episode(
     *,
     num_steps: int,
     update_spec: Callable | None = None,
+    record_images: bool = False,
 ) -> Trajectory:
     """One robot, ``num_steps`` control steps.  ``update_spec(state, spec) -> spec`` refreshes goals each
-    step (e.g. the path tangent ahead, or the direction to a goal); it must only change array values."""
+    step (e.g. the path tangent ahead, or the direction to a goal); it must only change array values.
+    ``record_images`` keeps each step's camera frame (for first-person videos; memory grows with T)."""
     reset_key, key = jax.random.split(key)
     state = env.reset(reset_key, task)
 
@@ -77,6 +80,7 @@ def run_episode(
         record = Trajectory(
             pose=frozen.info["pose"], signals=frozen.signals, done=frozen.done, action=action,
             value=info["value"], preds=info.get("preds", {}), metrics=frozen.metrics,
+            image=state.obs.images[-1] if record_images else None,
         )
         return (frozen, new_policy_state), record
 

@@ -60,8 +60,10 @@ def class_colors() -> np.ndarray:
     return np.asarray([table[n] for n in CLASS_NAMES], np.uint8)
 
 
-def draw_scene(ax, scene, task, poses, first_pose):
-    """Bird's-eye view on a matplotlib axis."""
+def draw_scene(ax, scene, task, drives=None, first_pose=None, legend=True):
+    """Bird's-eye view on a matplotlib axis: the layout, the task, and ``drives`` -- a dict of
+    ``label -> poses f32[T, >=2]`` (or a list of such arrays) drawn as coloured lines -- with an arrow at
+    ``first_pose`` (x, y, yaw)."""
     from matplotlib import patches as mpatches
 
     colors = class_colors() / 255.0
@@ -99,13 +101,19 @@ def draw_scene(ax, scene, task, poses, first_pose):
             p = np.asarray(p)
             ax.plot(*p, "o", color="magenta", ms=6, zorder=5)
             ax.arrow(p[0], p[1], 2 * np.cos(h), 2 * np.sin(h), color="magenta", width=0.15, zorder=5)
-    ax.plot(poses[:, 0], poses[:, 1], "-", color="red", lw=2, zorder=6, label="demo drive")
-    x, y, yaw = first_pose
-    ax.arrow(x, y, 1.5 * np.cos(yaw), 1.5 * np.sin(yaw), color="red", width=0.3, zorder=7)
+    palette = ("red", "tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "black")
+    for (label, poses), color in zip((drives or {}).items(), palette):
+        for i, p in enumerate(poses if isinstance(poses, (list, tuple)) else [poses]):
+            p = np.asarray(p)
+            ax.plot(p[:, 0], p[:, 1], "-", color=color, lw=2, zorder=6, label=label if i == 0 else None)
+    if first_pose is not None:
+        x, y, yaw = np.asarray(first_pose)[:3]
+        ax.arrow(x, y, 1.5 * np.cos(yaw), 1.5 * np.sin(yaw), color="red", width=0.3, zorder=7)
     ax.set_xlim(b[0] - pad, b[2] + pad)
     ax.set_ylim(b[1] - pad, b[3] + pad)
     ax.set_aspect("equal")
-    ax.legend(loc="upper right", fontsize=7)
+    if legend:
+        ax.legend(loc="upper right", fontsize=7)
 
 
 def show(name: str, *, seed: int = 0, split: str = "train", steps: int = 40, frames: int = 6, out: str | None = None,
@@ -131,7 +139,7 @@ def show(name: str, *, seed: int = 0, split: str = "train", steps: int = 40, fra
     grid = fig.add_gridspec(3, frames, height_ratios=[frames * 0.6 * 2.2, 2.2 * cam.height / cam.width * 1.2,
                                                       2.2 * cam.height / cam.width * 1.2])
     ax = fig.add_subplot(grid[0, :])
-    draw_scene(ax, scene, task, poses, poses[0])
+    draw_scene(ax, scene, task, {"demo drive": poses}, poses[0])
     ax.set_title(f"{name} ({split}, seed {seed}): layout, task and a {steps}-step demo drive")
     table = class_colors()
     for k, (i, (image, semantic, _)) in enumerate(zip(picks, views)):

@@ -12,7 +12,9 @@ Tasks: follow a path given as a polyline of ``path_points`` vertices.  'train' d
 paper's training path) centred near the middle of the arena; 'eval' draws sinusoids of random
 amplitude and wavelength crossing the arena in one of four directions, from a disjoint seed stream.
 The paths ignore the obstacles (as in the paper): the car has to leave the path to get around a tree.
-``info['goal_heading']`` is the path's tangent ``lookahead`` m ahead of the car's projection on it.
+``info['goal_heading']`` points from the car to the path point ``lookahead`` m ahead of the car's
+projection on it (a pursuit point: on the path this is about the tangent; off the path, after going
+round a tree, it leads back to the path instead of running parallel to it).
 
 Metrics: ``path_distance`` (now) and ``mean_path_distance`` (the paper's average distance from the
 path, m), ``progress`` (fraction of the path's length covered, monotone), ``crash`` (0/1).  The episode
@@ -95,7 +97,7 @@ class ForestEnv(common.SceneEnv):
 
     def task_init(self, task: ForestTask, pose):
         s, dist = common.project_on_path(task.path, pose[:2], 0.0, 0.0)
-        info = {"path_s": s, "goal_heading": self._goal_heading(task, s)}
+        info = {"path_s": s, "goal_heading": self._goal_heading(task, s, pose)}
         zero = jnp.zeros((), jnp.float32)
         metrics = {"path_distance": dist, "mean_path_distance": dist, "progress": zero, "crash": zero,
                    "steps": zero}
@@ -118,11 +120,14 @@ class ForestEnv(common.SceneEnv):
             "crash": jnp.maximum(m["crash"], signals["collision"]),
             "steps": steps,
         }
-        info = {"path_s": s, "goal_heading": self._goal_heading(task, s)}
+        info = {"path_s": s, "goal_heading": self._goal_heading(task, s, pose)}
         return info, metrics, s >= length - self.config.finish_tolerance
 
-    def _goal_heading(self, task, s):
-        return common.path_point(task.path, s + self.config.lookahead)[1]
+    def _goal_heading(self, task, s, pose):
+        point, tangent = common.path_point(task.path, s + self.config.lookahead)
+        d = point - pose[:2]
+        # At the path's very end the pursuit point can coincide with the car: use the tangent there.
+        return jnp.where(jnp.linalg.norm(d) > 0.5, jnp.arctan2(d[1], d[0]), tangent)
 
 
 # -------------------------------------------------------------------------------------------- layout
