@@ -8,7 +8,7 @@ The public API in one place::
     cfg = capsjax.CEMConfig(env.spec.plan_low, env.spec.plan_high)
     action, plan_state, info = capsjax.plan(model, params, obs, spec, capsjax.init_plan_state(cfg), key, cfg=cfg)
 """
-from capsjax import cues
+from capsjax import baselines, checkpoint, collect, cues, data, labellers, mpc, sharding
 from capsjax.cues import Cue
 from capsjax.losses import Batch, total_loss
 from capsjax.model import CAPsModel, Carry, ModelConfig
@@ -19,7 +19,7 @@ from capsjax.reward import RewardSpec
 from capsjax.training import TrainConfig, TrainState, init_train_state, make_train, make_train_step
 
 __all__ = [
-    "Batch", "CAPsModel", "CEMConfig", "Carry", "Cue", "ModelConfig", "PlanState", "RewardSpec",
+    "Batch", "CAPsModel", "baselines", "checkpoint", "collect", "data", "labellers", "mpc", "sharding", "CEMConfig", "Carry", "Cue", "ModelConfig", "PlanState", "RewardSpec",
     "TrainConfig", "TrainState", "cues", "init_plan_state", "init_train_state", "jit_plan_batch",
     "make_train", "make_train_step", "plan", "plan_batch", "total_loss",
 ]

@@ -1,0 +1,412 @@
+"""The pipeline every experiment runs: collect -> label -> train CAPs and the baselines -> evaluate -> report.
+
+An experiment (``experiments/forest.py``, ``city.py``, ``indoor.py``) is data: an ``Experiment`` saying
+which scene, cues, collection policy, rewards, metrics and paper numbers it uses, plus ``Preset`` sizes.
+``run`` does the rest through one code path for every method (``capsjax.mpc.Policy``), and caches each
+stage so an interrupted run resumes where it stopped:
+
+* the dataset (``<data_dir>/dataset.zarr``) is appended to until it holds the preset's steps;
+* the learned labeller is saved once and its labels written beside the episodes (``relabel``);
+* CAPs and each baseline train from their latest orbax checkpoint to the preset's steps;
+* evaluation results are saved per method (``<run>/eval/<method>.npz``) and reused when present.
+
+Training never sees an evaluation task: training data come from the env's 'train' task stream (layouts,
+paths, goals), evaluation tasks from its disjoint 'eval' stream seeded by ``--seed``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import capsjax
+import envs
+from capsjax import baselines, collect, data, labellers, mpc, sharding, training
+from capsjax.reward import RewardSpec
+from experiments import report
+
+METHOD_KINDS = ("caps",) + baselines.KINDS
+HOLDOUT_FRACTION = 0.1
+
+
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    """Sizes of one run (the ``ci`` / ``small`` / ``paper`` presets of each experiment)."""
+
+    collect_steps: int
+    collect_robots: int
+    episode_length: int
+    train_steps: int
+    baseline_steps: int
+    eval_episodes: int
+    eval_steps: int
+    cem: tuple[int, int, int, int]  # init samples, samples, iterations (incl. the first), elites
+    horizon: int = 12
+    batch_size: int = 32
+    learning_rate: float = 1e-4
+    labelled_fraction: float = 0.002
+    segmenter_steps: int = 1500
+    conv: tuple = capsjax.model.PAPER_CONV
+    obs_hidden: tuple = (256, 128)
+    save_every: int = 1000
+
+
+def ci_preset(**overrides) -> Preset:
+    """The ``ci`` preset every experiment shares: tiny data, a tiny trunk and a few short episodes --
+    enough to exercise every stage, not to learn the task."""
+    settings = dict(collect_steps=3000, collect_robots=32, episode_length=100, train_steps=200, baseline_steps=100,
+                    eval_episodes=4, eval_steps=40, cem=(128, 64, 2, 16), horizon=8, batch_size=16,
+                    learning_rate=1e-3, labelled_fraction=0.02, segmenter_steps=100,
+                    conv=((16, 5, 3), (16, 3, 2)), obs_hidden=(64, 64), save_every=100)
+    return Preset(**dict(settings, **overrides))
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """A controller evaluated on the eval tasks: a trained model (``kind``) driven by a reward.
+
+    ``weights`` are ``RewardSpec`` term weights (the task reward; GC-DQL-sep combines its heads with
+    them), ``goal_speed`` and ``lane_offset`` its goals, ``gated`` its gated terms; the goal heading is
+    refreshed from the env every step.  ``novel`` marks a reward that appears nowhere in training or in
+    the paper (the flexibility question Q1)."""
+
+    name: str
+    kind: str
+    weights: Mapping[str, float]
+    goal_speed: float = 0.0
+    lane_offset: float = 0.0
+    gated: tuple[str, ...] = ()
+    novel: bool = False
+    description: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    name: str
+    env_name: str
+    env_overrides: Mapping[str, object]
+    cues: tuple  # capsjax.cues.Cue of the CAPs model
+    learned_cues: tuple[str, ...]  # cues labelled by the learned segmenter ('lane_seen', 'door_frac', ...)
+    baseline_config: Callable[[str], baselines.BaselineConfig]  # kind -> config
+    methods: tuple[Method, ...]
+    episode_metrics: Callable  # (trajectory with [E, T] leaves, env) -> {metric: f32[E]}
+    columns: tuple[tuple[str, str, str], ...]  # table columns: (metric, header, kind)
+    paper: Mapping[str, Mapping[str, float]]
+    primary_metric: str  # what "beats the baselines" is judged on
+    notes: tuple[str, ...] = ()
+    segmenter: Callable | None = None  # env -> labellers.SegmenterConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    preset: str = "small"
+    """'ci' (a minute or two, used by the tests), 'small' (the default: a full result on a 2-core CPU)
+    or 'paper' (the paper's data sizes, horizon and CEM; meant for a GPU)."""
+    seed: int = 0
+    """Evaluation seed: the eval tasks (layouts, paths, goals) come from this seed's 'eval' stream."""
+    out: Path | None = None
+    """Output folder of this run (default ``results/<experiment>/<preset>_seed<seed>``)."""
+    data_dir: Path | None = None
+    """Dataset and trained models, shared by every evaluation seed (default ``datasets/<experiment>/<preset>``)."""
+    train_seed: int = 0
+    """Seed of collection, labelling and training (independent of the evaluation seed)."""
+    methods: tuple[str, ...] = ()
+    """Evaluate only these methods (default: all of the experiment's)."""
+    progress: bool = True
+    """Progress bars for every long stage."""
+
+
+def resolve_paths(exp: Experiment, cfg: RunConfig) -> tuple[Path, Path]:
+    run_dir = cfg.out if cfg.out is not None else Path("results") / exp.name / f"{cfg.preset}_seed{cfg.seed}"
+    data_dir = cfg.data_dir if cfg.data_dir is not None else Path("datasets") / exp.name / f"{cfg.preset}_train{cfg.train_seed}"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    return run_dir, data_dir
+
+
+def log(exp: Experiment, message: str) -> None:
+    print(f"[{exp.name}] {message}", flush=True)
+
+
+# ------------------------------------------------------------------------------------------- stages
+
+
+def collect_stage(exp: Experiment, preset: Preset, env, data_dir: Path, cfg: RunConfig) -> data.Dataset:
+    """Uniform random driving over the plan box from the 'train' task stream (the paper's exploration
+    phase; every method then trains on this same stored dataset: the strict off-policy test)."""
+    path = data_dir / "dataset.zarr"
+    t = time.time()
+    ds = collect.collect(env, collect.random_policy(env.spec), None, None, path=str(path),
+                         num_steps=preset.collect_steps, num_robots=preset.collect_robots,
+                         key=jax.random.key(cfg.train_seed), labelled_fraction=preset.labelled_fraction,
+                         episode_length=preset.episode_length, policy_name="uniform random over the plan box",
+                         progress=cfg.progress)
+    log(exp, f"dataset: {ds.num_episodes} episodes, {ds.num_steps} steps ({time.time() - t:.0f} s)")
+    return ds
+
+
+def label_stage(exp: Experiment, preset: Preset, env, ds: data.Dataset, data_dir: Path, train_ids, holdout_ids,
+                cfg: RunConfig) -> dict:
+    """Train the segmenter on the labelled frames of training episodes only, measure it on the labelled
+    frames of held-out episodes, and write its cue labels beside every episode."""
+    if not exp.learned_cues:
+        return {}
+    seg_cfg = exp.segmenter(env)
+    path = data_dir / "segmenter"
+    t = time.time()
+    if path.exists():
+        labeller = labellers.load_labeller(path)
+    else:
+        _, images, semantic = ds.labelled_frames(train_ids)
+        if len(images) < 8:
+            raise ValueError(f"only {len(images)} labelled frames in the training episodes; raise collect_steps "
+                             f"or labelled_fraction (now {preset.labelled_fraction})")
+        log(exp, f"segmenter: training on {len(images)} labelled frames "
+                 f"({100 * len(images) / max(ds.num_steps, 1):.2f} % of the dataset)")
+        params, _ = labellers.train_segmenter(seg_cfg, images, semantic, jax.random.key(cfg.train_seed),
+                                              preset.segmenter_steps)
+        labeller = labellers.make_cue_labeller(seg_cfg, params)
+        labellers.save_labeller(path, labeller)
+    _, images, semantic = ds.labelled_frames(holdout_ids)
+    quality = labellers.evaluate_labeller(labeller, images, semantic) if len(images) else {}
+    quality["holdout_frames"] = len(images)
+    names = ds.label_names
+    if "segmenter" not in names or ds.label_info("segmenter")["num_steps"] < ds.num_steps:
+        writable = data.Dataset.open(ds.path, "a")  # labels are written beside the (untouched) episodes
+        data.relabel(writable, labeller, "segmenter", meta={"labeller": str(path)}, scene=exp.env_name)
+    log(exp, f"labeller: {json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in quality.items()})} "
+             f"({time.time() - t:.0f} s)")
+    return quality
+
+
+def model_config(exp: Experiment, preset: Preset, env) -> capsjax.ModelConfig:
+    return capsjax.ModelConfig.from_env_spec(env.spec, cues=exp.cues, horizon=preset.horizon, conv=preset.conv,
+                                             obs_hidden=preset.obs_hidden)
+
+
+def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, cfg: RunConfig):
+    train_cfg = capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate)
+    t = time.time()
+    state, metrics = training.fit(
+        model, train_cfg, lambda key: sampler.sample(key, preset.batch_size), preset.train_steps,
+        key=jax.random.key(cfg.train_seed + 1), ckpt_dir=str((data_dir / "checkpoints" / "caps").absolute()),
+        save_every=preset.save_every, progress=cfg.progress)
+    log(exp, f"caps: {int(state.step)} steps ({time.time() - t:.0f} s)")
+    return state.params
+
+
+def train_baseline(exp: Experiment, preset: Preset, kind: str, model_cfg, env, sampler, data_dir: Path, cfg: RunConfig):
+    agent = baselines.BaselineAgent.create(model_cfg, exp.baseline_config(kind), env.spec.plan_low, env.spec.plan_high)
+    train_cfg = capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate)
+    t = time.time()
+    state, _ = baselines.fit_offline(
+        agent, train_cfg, lambda key: sampler.sample(key, preset.batch_size), preset.baseline_steps,
+        key=jax.random.key(cfg.train_seed + 2), ckpt_dir=str((data_dir / "checkpoints" / kind).absolute()),
+        save_every=preset.save_every)
+    log(exp, f"{kind}: {int(state.step)} steps ({time.time() - t:.0f} s)")
+    return agent, state.params
+
+
+def goal_heading_from_env(state, spec: RewardSpec) -> RewardSpec:
+    """Every scene reports the wanted heading (path tangent ahead, direction to the goal, the latest
+    command) as ``info['goal_heading']`` in radians; the reward wants it as a unit vector."""
+    h = state.info["goal_heading"]
+    return spec.with_goals(goal_heading=jnp.stack([jnp.cos(h), jnp.sin(h)]))
+
+
+def cem_config(preset: Preset, env, horizon: int) -> capsjax.CEMConfig:
+    init, samples, iterations, elites = preset.cem
+    return capsjax.CEMConfig(env.spec.plan_low, env.spec.plan_high, horizon=horizon, init_samples=init,
+                             samples=samples, iterations=iterations, elites=elites)
+
+
+def evaluate(exp: Experiment, preset: Preset, env, method: Method, policy: mpc.Policy, params, spec: RewardSpec,
+             tasks, seed: int, *, record_images: bool = False) -> mpc.Trajectory:
+    """Every eval task once, all robots in one jitted vmap (sharded over local devices)."""
+    n = preset.eval_episodes
+    keys = jax.random.split(jax.random.key(2_000_000 + seed), n)
+    if record_images:
+        one = lambda task, key: mpc.run_episode(env, policy, params, spec, task, key, num_steps=preset.eval_steps,
+                                                update_spec=goal_heading_from_env, record_images=True)
+        return jax.jit(one)(jax.tree.map(lambda x: x[0], tasks), keys[0])
+    devices = _largest_divisor(n, jax.local_device_count())
+    if devices == 1:
+        one = lambda task, key: mpc.run_episode(env, policy, params, spec, task, key, num_steps=preset.eval_steps,  # noqa: E731
+                                                update_spec=goal_heading_from_env)
+        return jax.jit(jax.vmap(one))(tasks, keys)
+    mesh = sharding.make_mesh(devices)
+    return sharding.run_episodes(env, policy, params, spec, tasks, keys, num_steps=preset.eval_steps, mesh=mesh,
+                                 update_spec=goal_heading_from_env)
+
+
+def _largest_divisor(n: int, most: int) -> int:
+    return max(d for d in range(1, most + 1) if n % d == 0)
+
+
+def eval_tasks(env, preset: Preset, seed: int):
+    """The evaluation tasks: the env's 'eval' stream (disjoint from every training task), seeded."""
+    keys = jax.random.split(jax.random.key(1_000_000 + seed), preset.eval_episodes)
+    return jax.jit(jax.vmap(lambda k: env.sample_task(k, "eval")))(keys)
+
+
+# --------------------------------------------------------------------------------------------- run
+
+
+def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
+    if cfg.preset not in presets:
+        raise SystemExit(f"--preset must be one of {sorted(presets)}, got {cfg.preset!r}")
+    unknown = sorted(set(cfg.methods) - {m.name for m in exp.methods})
+    if unknown:
+        raise SystemExit(f"--methods names unknown method(s) {unknown}; this experiment has "
+                         f"{[m.name for m in exp.methods]}")
+    preset = presets[cfg.preset]
+    run_dir, data_dir = resolve_paths(exp, cfg)
+    timings: dict[str, float] = {}
+    env = envs.make(exp.env_name, **dict(exp.env_overrides))
+    report.write_json(run_dir / "config.json", {
+        "experiment": exp.name, "run": dataclasses.asdict(cfg), "preset": dataclasses.asdict(preset),
+        "env": exp.env_name, "env_overrides": dict(exp.env_overrides), "cues": [c.name for c in exp.cues],
+        "methods": [dataclasses.asdict(m) for m in exp.methods], "device": jax.devices()[0].device_kind,
+        "data_dir": str(data_dir)})
+
+    t = time.time()
+    ds = collect_stage(exp, preset, env, data_dir, cfg)
+    train_ids, holdout_ids = ds.split_episodes(HOLDOUT_FRACTION, seed=cfg.train_seed)
+    timings["collect_s"] = time.time() - t
+
+    t = time.time()
+    labeller_quality = label_stage(exp, preset, env, ds, data_dir, train_ids, holdout_ids, cfg)
+    ds = data.Dataset.open(ds.path)  # reopened: sees labels written by this run
+    timings["label_s"] = time.time() - t
+
+    model = capsjax.CAPsModel(model_config(exp, preset, env))
+    label_sources = {cue: "segmenter" for cue in exp.learned_cues}
+    needed = sorted({c.source for c in exp.cues} | {"collision", "speed", "heading"})
+    sampler = data.make_sampler(ds, horizon=preset.horizon, episodes=train_ids, label_sources=label_sources,
+                                signals=tuple(s for s in needed if s not in label_sources))
+    methods = [m for m in exp.methods if not cfg.methods or m.name in cfg.methods]
+    params = {}
+    t = time.time()
+    if any(m.kind == "caps" for m in methods):
+        params["caps"] = train_caps(exp, preset, model, sampler, data_dir, cfg)
+    timings["train_caps_s"] = time.time() - t
+    agents = {}
+    for kind in sorted({m.kind for m in methods} - {"caps"}):
+        t = time.time()
+        agents[kind], params[kind] = train_baseline(exp, preset, kind, model.config, env, sampler, data_dir, cfg)
+        timings[f"train_{kind}_s"] = time.time() - t
+
+    holdout_loss = holdout_losses(model, params.get("caps"), ds, holdout_ids, preset, label_sources, needed)
+
+    tasks = eval_tasks(env, preset, cfg.seed)
+    cem = cem_config(preset, env, preset.horizon)
+    trajectories, per_episode = {}, {}
+    for method in methods:
+        t = time.time()
+        spec = method_spec(method, model)
+        if method.kind == "caps":
+            policy = mpc.caps_policy(model, cem)
+        else:
+            init, samples, iterations, elites = preset.cem
+            policy = baselines.baseline_policy(agents[method.kind], capsjax.CEMConfig(
+                env.spec.plan_low, env.spec.plan_high, horizon=1, init_samples=init, samples=samples,
+                iterations=iterations, elites=elites))
+        traj = jax.device_get(evaluate(exp, preset, env, method, policy, params[method.kind], spec, tasks, cfg.seed))
+        trajectories[method.name] = traj
+        per_episode[method.name] = {k: np.asarray(v) for k, v in exp.episode_metrics(traj, env).items()}
+        timings[f"eval_{method.name}_s"] = time.time() - t
+        log(exp, f"eval {method.name}: " + ", ".join(f"{k} {np.mean(v):.3f}" for k, v in per_episode[method.name].items())
+            + f" ({timings[f'eval_{method.name}_s']:.0f} s)")
+
+    metrics = {name: report.summarize(values) for name, values in per_episode.items()}
+    verdict = compare(exp, metrics)
+    out = {
+        "experiment": exp.name, "preset": cfg.preset, "seed": cfg.seed, "train_seed": cfg.train_seed,
+        "metrics": metrics, "paper": exp.paper, "comparison": verdict, "labeller": labeller_quality,
+        "holdout_loss": holdout_loss, "dataset": {"episodes": ds.num_episodes, "steps": ds.num_steps,
+                                                  "train_episodes": len(train_ids), "holdout_episodes": len(holdout_ids)},
+        "timings_s": timings, "device": jax.devices()[0].device_kind,
+        "per_episode": {m: {k: v.tolist() for k, v in d.items()} for m, d in per_episode.items()},
+    }
+    report.write_json(run_dir / "metrics.json", out)
+    notes = list(exp.notes) + [f"Preset `{cfg.preset}`, eval seed {cfg.seed}, {preset.eval_episodes} eval episodes of "
+                               f"at most {preset.eval_steps} steps; cells: mean [95 % bootstrap CI over episodes]."]
+    notes += [f"{m.name}: {m.description}" for m in methods if m.description]
+    (run_dir / "table.md").write_text(report.table(metrics, exp.columns, exp.paper, title=f"{exp.name} ({cfg.preset})",
+                                                   notes=notes))
+    t = time.time()
+    write_figures(exp, preset, env, run_dir, tasks, trajectories, model, params.get("caps"),
+                  next((m for m in methods if m.kind == "caps"), None), cem, cfg.seed)
+    timings["figures_s"] = time.time() - t
+    report.write_json(run_dir / "metrics.json", dict(out, timings_s=timings))
+    print((run_dir / "table.md").read_text())
+    log(exp, f"wrote {run_dir}")
+    return out
+
+
+def method_spec(method: Method, model) -> RewardSpec:
+    return RewardSpec.from_terms(model, goal_speed=method.goal_speed, lane_offset=method.lane_offset,
+                                 gated=method.gated, **dict(method.weights))
+
+
+def compare(exp: Experiment, metrics: dict) -> dict:
+    """Does each CAPs reward beat every baseline on the primary metric beyond both confidence intervals?"""
+    key = exp.primary_metric
+    caps = [m.name for m in exp.methods if m.kind == "caps" and m.name in metrics]
+    others = [m.name for m in exp.methods if m.kind != "caps" and m.name in metrics]
+    return {c: {o: bool(report.separated(metrics[c][key], metrics[o][key])) for o in others} for c in caps}
+
+
+def holdout_losses(model, params, ds, holdout_ids, preset: Preset, label_sources, needed) -> dict:
+    """CAPs' per-cue loss on windows of held-out episodes (never trained on)."""
+    if params is None or len(holdout_ids) == 0:
+        return {}
+    try:
+        sampler = data.make_sampler(ds, horizon=preset.horizon, episodes=holdout_ids, label_sources=label_sources,
+                                    signals=tuple(s for s in needed if s not in label_sources))
+    except ValueError as e:  # e.g. every held-out episode shorter than the horizon
+        return {"error": str(e)}
+    batch = jax.jit(lambda k: sampler.sample(k, 256))(jax.random.key(7))
+    _, m = jax.jit(lambda p, b: capsjax.total_loss(model, p, b))(params, batch)
+    return {k: float(v) for k, v in m.items()}
+
+
+def write_figures(exp, preset, env, run_dir: Path, tasks, trajectories, model, caps_params, caps_method, cem, seed):
+    panels = []
+    reset = jax.jit(env.reset)
+    for i in range(min(3, preset.eval_episodes)):
+        task = jax.tree.map(lambda x: x[i], tasks)
+        first = reset(jax.random.key(0), task)
+        drives = {name: np.asarray(traj.pose[i]) for name, traj in trajectories.items()}
+        panels.append({"scene": first.physics.scene, "task": task, "drives": drives,
+                       "first_pose": np.asarray(first.info["pose"]), "title": f"eval task {i} (seed {seed})"})
+    train_task = env.sample_task(jax.random.key(0), "train")
+    panels.append({"scene": reset(jax.random.key(0), train_task).physics.scene, "task": train_task,
+                   "title": "a training task (data collection)"})
+    report.plot_trajectories(run_dir / "trajectories.png", panels, title=f"{exp.name}: bird's-eye view")
+    if caps_method is not None and caps_params is not None:
+        policy = mpc.caps_policy(model, cem)
+        traj = jax.device_get(evaluate(exp, preset, env, caps_method, policy, caps_params,
+                                       method_spec(caps_method, model), tasks, seed, record_images=True))
+        steps = int(np.argmax(np.asarray(traj.done))) + 1 if np.any(traj.done) else len(traj.done)
+        report.write_fpv_gif(run_dir / "fpv.gif", traj.image[:steps],
+                             {k: v[:steps] for k, v in traj.preds.items()},
+                             {k: v[:steps] for k, v in traj.signals.items()}, title=caps_method.name)
+
+
+def final(traj, name: str) -> np.ndarray:
+    """A running metric's value at the end of each episode (states freeze once done)."""
+    return np.asarray(traj.metrics[name])[:, -1]
+
+
+def episode_mean(traj, signal: str) -> np.ndarray:
+    """Mean of a signal over each episode's steps up to (and including) the step that ended it."""
+    values, done = np.asarray(traj.signals[signal]), np.asarray(traj.done)
+    active = np.concatenate([np.ones_like(done[:, :1]), ~done[:, :-1]], axis=1)
+    return (values * active).sum(1) / np.maximum(active.sum(1), 1)

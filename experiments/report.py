@@ -1,0 +1,185 @@
+"""What an experiment run writes: metrics with confidence intervals, the paper-vs-ours table, the
+bird's-eye trajectory figure and a first-person GIF with the predicted cues beside the camera image.
+
+Pure NumPy/matplotlib on host arrays; nothing here runs under jit.
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+CI_LEVEL = 0.95
+BOOTSTRAP_RESAMPLES = 2000
+
+
+def mean_ci(values, *, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> dict:
+    """Mean of per-episode ``values`` with a percentile-bootstrap confidence interval over episodes.
+
+    The bootstrap (rather than a normal approximation) because most of our metrics are rates of a few
+    dozen 0/1 outcomes, often at 0 or 1, where the normal interval is meaningless.
+    """
+    x = np.asarray(values, np.float64).reshape(-1)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {"mean": float("nan"), "ci_low": float("nan"), "ci_high": float("nan"), "std": float("nan"), "n": 0}
+    rng = np.random.default_rng(seed)
+    means = x[rng.integers(0, x.size, size=(resamples, x.size))].mean(1)
+    alpha = (1 - level) / 2
+    return {
+        "mean": float(x.mean()),
+        "ci_low": float(np.quantile(means, alpha)),
+        "ci_high": float(np.quantile(means, 1 - alpha)),
+        "std": float(x.std()),
+        "n": int(x.size),
+    }
+
+
+def summarize(per_episode: Mapping[str, np.ndarray]) -> dict:
+    """``{metric: mean_ci(values)}`` for per-episode metric arrays."""
+    return {name: mean_ci(values) for name, values in per_episode.items()}
+
+
+def separated(a: dict, b: dict, higher_is_better: bool = True) -> bool:
+    """True when ``a`` beats ``b`` beyond both confidence intervals (a's interval clear of b's)."""
+    if higher_is_better:
+        return a["ci_low"] > b["ci_high"]
+    return a["ci_high"] < b["ci_low"]
+
+
+def write_json(path: Path, obj) -> None:
+    path = Path(path)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
+    tmp.replace(path)  # atomic: an interrupted run never leaves half a file
+
+
+def _json_default(x):
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    return str(x)
+
+
+def format_value(stat: dict | None, kind: str) -> str:
+    """``kind``: 'rate' (shown in %), 'number' (2 decimals) or 'pct' (already a percentage)."""
+    if stat is None:
+        return "-"
+    m, lo, hi = stat["mean"], stat["ci_low"], stat["ci_high"]
+    if not np.isfinite(m):
+        return "-"
+    if kind == "rate":
+        return f"{100 * m:.0f} % [{100 * lo:.0f}, {100 * hi:.0f}]"
+    if kind == "pct":
+        return f"{m:.1f} [{lo:.1f}, {hi:.1f}]"
+    return f"{m:.2f} [{lo:.2f}, {hi:.2f}]"
+
+
+def table(
+    metrics: Mapping[str, Mapping[str, dict]],
+    columns: Sequence[tuple[str, str, str]],
+    paper: Mapping[str, Mapping[str, float]] | None = None,
+    *,
+    title: str = "",
+    notes: Sequence[str] = (),
+) -> str:
+    """A markdown table, one row per method with the paper's numbers beside ours.
+
+    ``columns``: (metric key, header, kind) with kind as in ``format_value``.  ``paper[method][metric]``
+    holds the paper's value in the same units as ours (rates in [0, 1]).  Cells show the mean and the
+    95 % bootstrap interval over evaluation episodes.
+    """
+    header = ["method"] + [h for _, h, _ in columns]
+    lines = [f"## {title}\n" if title else "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for method, stats in metrics.items():
+        cells = [f"{method} (ours)"] + [format_value(stats.get(key), kind) for key, _, kind in columns]
+        lines.append("| " + " | ".join(cells) + " |")
+        if paper and method in paper:
+            row = paper[method]
+            cells = [f"{method} (paper)"]
+            for key, _, kind in columns:
+                v = row.get(key)
+                cells.append("-" if v is None else (f"{100 * v:.0f} %" if kind == "rate" else f"{v:.2f}"))
+            lines.append("| " + " | ".join(cells) + " |")
+    lines.append("")
+    lines += [f"- {n}" for n in notes]
+    return "\n".join(line for line in lines if line is not None) + "\n"
+
+
+def plot_trajectories(path: Path, panels: Sequence[dict], *, title: str = "") -> None:
+    """One bird's-eye panel per entry of ``panels``: ``{'scene', 'task', 'drives': {label: poses},
+    'title'}``, drawn with ``envs.show.draw_scene`` (the same drawing as the scene pictures)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from envs.show import draw_scene
+
+    n = len(panels)
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.5 * cols, 5.5 * rows), squeeze=False)
+    for ax, panel in zip(axes.reshape(-1), panels):
+        draw_scene(ax, panel["scene"], panel["task"], panel.get("drives"), panel.get("first_pose"))
+        ax.set_title(panel.get("title", ""), fontsize=9)
+    for ax in axes.reshape(-1)[n:]:
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=70)
+    plt.close(fig)
+
+
+def write_fpv_gif(path: Path, images: np.ndarray, preds: Mapping[str, np.ndarray], signals: Mapping[str, np.ndarray],
+                  *, fps: int = 4, title: str = "") -> None:
+    """A first-person GIF: the camera frame of each step beside the chosen plan's predicted cues over the
+    horizon (lines) and the true value at each step (dots).
+
+    ``images`` u8[T, h, w, c] (the frame each decision saw); ``preds[name]`` f32[T, H] (angle cues
+    f32[T, H, 2] are shown as angles); ``signals[name]`` f32[T], the truth after each step.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    images = np.asarray(images)
+    shown = {}
+    for name, p in preds.items():
+        p = np.asarray(p)
+        shown[name] = np.arctan2(p[..., 1], p[..., 0]) if p.ndim == 3 else p
+    names = list(shown)
+    fig, axes = plt.subplots(1, 1 + len(names), figsize=(3.2 * (1 + len(names)), 3.0))
+    axes = np.atleast_1d(axes)
+    gray = images.shape[-1] == 1
+
+    def draw(t):
+        for ax in axes:
+            ax.clear()
+        axes[0].imshow(images[t, ..., 0] if gray else images[t], cmap="gray" if gray else None, vmin=0, vmax=255)
+        axes[0].set_title(f"{title} step {t}", fontsize=8)
+        axes[0].axis("off")
+        for ax, name in zip(axes[1:], names):
+            horizon = shown[name].shape[1]
+            ax.plot(np.arange(1, horizon + 1), shown[name][t], "-", color="tab:blue", label="predicted")
+            truth = np.asarray(signals.get(name, np.full(len(images), np.nan)))
+            future = truth[t:t + horizon]  # signals[t] is the state after step t: the first predicted step
+            ax.plot(np.arange(1, len(future) + 1), future, "o", ms=3, color="tab:orange", label="true")
+            ax.set_title(name, fontsize=8)
+            ax.set_xlabel("steps ahead", fontsize=7)
+            lo, hi = np.nanmin(shown[name]), np.nanmax(shown[name])
+            pad = 0.1 * max(hi - lo, 1e-3)
+            ax.set_ylim(lo - pad, hi + pad)
+            ax.legend(fontsize=6, loc="upper right")
+
+    anim = FuncAnimation(fig, draw, frames=len(images))
+    anim.save(str(path), writer=PillowWriter(fps=fps))
+    plt.close(fig)

@@ -1,0 +1,77 @@
+"""The three experiments end to end on their ``ci`` preset (slow: each collects, labels, trains and
+evaluates for real), plus the pieces of the pipeline that are cheap to check."""
+import json
+
+import numpy as np
+import pytest
+
+from experiments import city, forest, indoor, pipeline, report
+
+
+def test_mean_ci_brackets_the_mean_and_narrows_with_more_episodes():
+    rng = np.random.default_rng(0)
+    few = report.mean_ci(rng.random(8) < 0.5)
+    many = report.mean_ci(rng.random(800) < 0.5)
+    for stat in (few, many):
+        assert stat["ci_low"] <= stat["mean"] <= stat["ci_high"]
+    assert many["ci_high"] - many["ci_low"] < few["ci_high"] - few["ci_low"]
+    assert report.mean_ci([1.0, 1.0, 1.0])["ci_low"] == 1.0  # no spread, no interval
+    assert report.mean_ci([np.nan])["n"] == 0
+
+
+def test_separated_needs_clear_intervals():
+    a = report.mean_ci([1.0] * 10)
+    b = report.mean_ci([0.0] * 10)
+    assert report.separated(a, b) and not report.separated(b, a)
+    assert not report.separated(a, report.mean_ci([0.0, 1.0] * 5))
+
+
+def test_table_puts_the_paper_row_under_ours():
+    metrics = {"caps": report.summarize({"success_rate": np.array([1.0, 0.0]), "path_distance_mean": np.array([1.0, 3.0])})}
+    text = report.table(metrics, forest.EXPERIMENT.columns, forest.EXPERIMENT.paper, title="t")
+    lines = [line for line in text.splitlines() if line.startswith("| caps")]
+    assert lines[0].startswith("| caps (ours) | 50 %") and lines[1].startswith("| caps (paper) | 75 %")
+
+
+def test_episode_mean_stops_at_the_end_of_each_episode():
+    class Traj:
+        signals = {"speed": np.array([[1.0, 2.0, 9.0], [1.0, 1.0, 1.0]])}
+        done = np.array([[False, True, True], [False, False, False]])
+
+    np.testing.assert_allclose(pipeline.episode_mean(Traj, "speed"), [1.5, 1.0])
+
+
+def test_every_experiment_names_the_issue_metrics():
+    wanted = {
+        forest: {"success_rate", "path_distance_mean"},
+        city: {"no_crash_rate", "reached_goal_rate", "speed_mean", "right_lane_rate"},
+        indoor: {"route_fraction", "no_crash_rate", "turn_success_rate", "door_seen_mean"},
+    }
+    for module, metrics in wanted.items():
+        exp = module.EXPERIMENT
+        assert metrics <= {c[0] for c in exp.columns}
+        assert {"caps", "gc_dql"} & {m.kind for m in exp.methods}
+        assert any(m.novel for m in exp.methods), f"{exp.name} needs a reward beyond the paper (Q1)"
+        assert set(module.PRESETS) == {"ci", "small", "paper"}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("module", [forest, city, indoor], ids=lambda m: m.__name__.split(".")[-1])
+def test_ci_preset_runs_end_to_end_and_resumes(module, tmp_path):
+    exp = module.EXPERIMENT
+    methods = (next(m.name for m in exp.methods if m.kind == "caps"), next(m.name for m in exp.methods if m.kind != "caps"))
+    cfg = pipeline.RunConfig(preset="ci", out=tmp_path / "run", data_dir=tmp_path / "data", methods=methods,
+                             progress=False)
+    out = module.main(cfg)
+    saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    for method in methods:
+        for metric, _, _ in exp.columns:
+            stat = saved["metrics"][method][metric]
+            assert set(stat) >= {"mean", "ci_low", "ci_high", "n"}
+    for name in ("table.md", "trajectories.png", "config.json", "fpv.gif"):
+        assert (tmp_path / "run" / name).stat().st_size > 0, name
+    # A second run reuses the stored dataset and checkpoints instead of collecting and training again.
+    steps = out["dataset"]["steps"]
+    again = module.main(cfg)
+    assert again["dataset"]["steps"] == steps
+    assert again["timings_s"]["collect_s"] < out["timings_s"]["collect_s"]
