@@ -26,8 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.sharding import Mesh
 
-from capsjax import mpc
+from capsjax import mpc, sharding
 from capsjax.data import SPLITS, Dataset, _jsonable
 
 # ------------------------------------------------------------------------------------------ policies
@@ -279,7 +280,7 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
             key: jax.Array, labelled_fraction: float = 0.002, steps_per_chunk: int = 64, split: str = "train",
             task_sampler: Callable | None = None, episode_length: int | None = 200,
             policy_name: str | dict = "custom", chunk_steps: int = 1024, max_resets_per_step: int | None = None,
-            progress: bool = True) -> Dataset:
+            progress: bool = True, mesh: Mesh | None = None) -> Dataset:
     """Roll out ``num_robots`` robots under ``policy`` until the dataset at ``path`` holds ``num_steps``
     committed steps; returns the dataset (reopened read-only).
 
@@ -289,6 +290,11 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
     task ends finish them).  An existing store at ``path`` is appended to, never overwritten, after
     checking that it was recorded in the same env.  Episodes still running when the target is reached
     are dropped (only complete episodes are stored).  ``max_resets_per_step``: see ``make_chunk_fn``.
+
+    ``mesh`` (e.g. ``sharding.make_mesh()``): the robots are split over its devices (the fleet's robot
+    axis sharded, ``params`` and ``spec`` replicated), so the same jitted chunk runs data-parallel;
+    ``num_robots`` must be a multiple of the mesh size.  None: everything on the default device.  The
+    random streams do not depend on the placement, so the same key gives the same episodes either way.
     """
     import envs  # lazy: capsjax does not import envs at module load
 
@@ -304,6 +310,9 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
                          f"{steps_per_chunk}, {num_steps}")
     if not 0.0 <= labelled_fraction <= 1.0:
         raise ValueError(f"labelled_fraction must be in [0, 1], got {labelled_fraction}")
+    if mesh is not None and num_robots % mesh.devices.size:
+        raise ValueError(f"num_robots must be a multiple of the {mesh.devices.size} devices of the mesh, "
+                         f"got num_robots={num_robots}")
     base_env = env
     env = _episode_env(base_env, episode_length)
     sampler = task_sampler or _default_sampler(base_env, split)
@@ -335,6 +344,10 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
             stride=jnp.full((num_robots,), num_robots, jnp.int32))
     fleet = Fleet(state=state, policy_state=policy_state, task_key=jax.vmap(jax.random.key_data)(init_keys),
                   waiting=jnp.zeros(num_robots, bool))
+    if mesh is not None:
+        # jit follows the arguments' shardings: robot-sharded fleet in, robot-sharded fleet and records out.
+        fleet = sharding.shard_robots(fleet, mesh)
+        params, spec, key = sharding.replicate((params, spec, key), mesh)
     run = make_chunk_fn(env, policy, sampler, steps_per_chunk, max_resets_per_step)
     rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).astype(np.uint64))
     split_code = SPLITS.index(split)

@@ -64,7 +64,9 @@ def _check(out_path: str, ckpt_dir: str) -> None:
     state = training.init_train_state(MODEL, CFG, jax.random.key(2))
     mesh4 = sharding.make_mesh(4)
     train4 = training.make_train(MODEL, CFG, sample, 1, mesh=mesh4)
-    compiled4 = train4.lower(sharding.replicate(state, mesh4)).compile()  # compile once, call the executable
+    # Compile once, call the executable.  The outer jit because on CPU ``make_train`` is a host loop of
+    # jitted steps (``training.repeat_steps``); with one step its program is that step's.
+    compiled4 = jax.jit(train4).lower(sharding.replicate(state, mesh4)).compile()
     results["all_reduce_in_hlo"] = "all-reduce" in compiled4.as_text()
     state4, m4 = compiled4(sharding.replicate(state, mesh4))
     with jax.default_device(jax.devices()[0]):
@@ -112,12 +114,17 @@ def _check(out_path: str, ckpt_dir: str) -> None:
         json.dump(results, f)
 
 
-def test_four_devices_match_one(tmp_path):
-    out = tmp_path / "results.json"
+def _run_four_devices(mode: str, out, tmp_path) -> subprocess.CompletedProcess:
+    """This file's ``mode`` check in a subprocess with 4 forced CPU devices (the flag must precede JAX)."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
                PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]))
-    proc = subprocess.run([sys.executable, os.path.abspath(__file__), "check", str(out), str(tmp_path)], env=env,
+    return subprocess.run([sys.executable, os.path.abspath(__file__), mode, str(out), str(tmp_path)], env=env,
                           capture_output=True, text=True, timeout=600, check=False)
+
+
+def test_four_devices_match_one(tmp_path):
+    out = tmp_path / "results.json"
+    proc = _run_four_devices("check", out, tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     r = json.loads(out.read_text())
     print(r)
@@ -135,6 +142,72 @@ def test_four_devices_match_one(tmp_path):
     assert "multiple of the 4 devices" in r["indivisible_error"] and "robots['task']" in r["indivisible_error"]
 
 
+def _check_collect(out_path: str, store_dir: str) -> None:
+    """Runs under 4 forced devices: the same collection with the robots sharded over 4 devices and on 1."""
+    from capsjax import collect
+
+    assert len(jax.devices()) == 4, jax.devices()
+    chunk_devices = []
+    make_chunk_fn = collect.make_chunk_fn
+
+    def recording_chunk_fn(*args, **kwargs):  # records over how many devices each chunk's fleet lies
+        run = make_chunk_fn(*args, **kwargs)
+
+        def traced_run(fleet, *rest):
+            chunk_devices.append(len(fleet.waiting.sharding.device_set))
+            return run(fleet, *rest)
+
+        return traced_run
+
+    collect.make_chunk_fn = recording_chunk_fn
+    policy = collect.random_policy(ENV.spec)
+    kw = dict(num_steps=300, key=jax.random.key(5), labelled_fraction=0.0, steps_per_chunk=32, episode_length=20,
+              progress=False)
+    stores, devices = {}, {}
+    for n in (4, 1):
+        chunk_devices.clear()
+        path = os.path.join(store_dir, f"collect{n}.zarr")
+        stores[n] = collect.collect(ENV, policy, None, None, path=path, num_robots=ROBOTS,
+                                    mesh=sharding.make_mesh(4) if n == 4 else None, **kw)
+        devices[n] = sorted(set(chunk_devices))
+    a, b = stores[4], stores[1]
+    results = {"chunk_devices": [devices[4], devices[1]], "num_steps": [a.num_steps, b.num_steps],
+               "num_episodes": [a.num_episodes, b.num_episodes],
+               "bounds_equal": all(np.array_equal(x, y) for x, y in zip(a.episode_bounds(), b.episode_bounds())),
+               "tasks_equal": bool(np.array_equal(a.episode_tasks(), b.episode_tasks())),
+               "fields": list(a.step_fields()), "field_max_diff": {}}
+    for field in a.step_fields():
+        x, y = a.read_steps(field, 0, a.num_steps), b.read_steps(field, 0, min(a.num_steps, b.num_steps))
+        results["field_max_diff"][field] = (
+            float(np.max(np.abs(x.astype(np.float64) - y), initial=0.0)) if x.shape == y.shape else None)
+    bad_path = os.path.join(store_dir, "indivisible.zarr")
+    try:
+        collect.collect(ENV, policy, None, None, path=bad_path, num_robots=6, mesh=sharding.make_mesh(4), **kw)
+    except ValueError as e:
+        results["indivisible_error"] = str(e)
+    results["indivisible_store_created"] = os.path.exists(bad_path)
+    with open(out_path, "w") as f:
+        json.dump(results, f)
+
+
+def test_collection_on_four_devices_matches_one(tmp_path):
+    out = tmp_path / "collect.json"
+    proc = _run_four_devices("collect", out, tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    r = json.loads(out.read_text())
+    print(r)
+    assert r["chunk_devices"] == [[4], [1]]  # the fleet really was split over the 4 devices, and not on 1
+    assert r["num_steps"][0] == r["num_steps"][1] >= 300 and r["num_episodes"][0] == r["num_episodes"][1] > 4
+    assert r["bounds_equal"] and r["tasks_equal"]
+    assert set(r["fields"]) >= {"image", "vector", "action", "done", "pose"}
+    for field, diff in r["field_max_diff"].items():
+        assert diff is not None and diff < 1e-5, (field, diff)
+    assert "num_robots=6" in r["indivisible_error"] and "4 devices" in r["indivisible_error"]
+    assert not r["indivisible_store_created"]
+
+
 if __name__ == "__main__":
     if sys.argv[1] == "check":
         _check(sys.argv[2], sys.argv[3])
+    elif sys.argv[1] == "collect":
+        _check_collect(sys.argv[2], sys.argv[3])

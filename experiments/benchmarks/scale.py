@@ -9,7 +9,12 @@ JSON lines (``experiments.bench.emit``):
 * ``scale.env_steps_per_s_<n>dev``: fast-world control steps per second, ``--robots`` robots sharded
   over ``n`` devices, ``--env-steps`` steps in one ``lax.scan`` (collection's inner loop without the
   policy and the disk);
-* ``scale.train_ratio_<n>dev_vs_1dev`` / ``scale.env_ratio_<n>dev_vs_1dev``: the same-run ratios;
+* ``scale.collect_steps_per_s_<n>dev``: committed steps per second of ``capsjax.collect.collect`` (random
+  policy, fast world, ``--robots`` robots sharded over ``n`` devices with ``mesh=``, zarr store in a
+  temporary directory, no labelled frames), ``--collect-steps`` steps per timed collection, median of
+  ``--repeats`` collections into fresh stores after a first one that compiles;
+* ``scale.train_ratio_<n>dev_vs_1dev`` / ``scale.env_ratio_<n>dev_vs_1dev`` / ``scale.collect_ratio_<n>dev_vs_1dev``:
+  the same-run ratios;
 * with a GPU present, the same figures on it with the suffix ``_gpu``.
 
 CPU device counts are forced with ``XLA_FLAGS=--xla_force_host_platform_device_count=n``, which must be
@@ -23,6 +28,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 
 import jax
@@ -95,18 +101,42 @@ def env_steps_per_s(mesh, robots: int, steps: int, repeats: int) -> float:
     return robots * steps / _median_time(rollout, state, repeats)
 
 
+def collect_steps_per_s(mesh, robots: int, steps: int, repeats: int) -> float:
+    """End-to-end collection (rollout, host splitting, zarr writes) with the fleet sharded over ``mesh``."""
+    from capsjax import collect
+    from envs.fast import FastEnv
+
+    env = FastEnv()
+    policy = collect.random_policy(env.spec)
+    times, committed = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(repeats + 1):  # the first one compiles the chunk and is not timed
+            start = time.perf_counter()
+            ds = collect.collect(env, policy, None, None, path=os.path.join(tmp, f"run{i}.zarr"), num_steps=steps,
+                                 num_robots=robots, key=jax.random.key(i), labelled_fraction=0.0,
+                                 episode_length=100, progress=False, mesh=mesh)
+            if i:
+                times.append(time.perf_counter() - start)
+                committed.append(ds.num_steps)
+    return float(np.median(np.asarray(committed) / np.asarray(times)))
+
+
 def measure(suffix: str, args) -> dict:
     from capsjax import sharding
 
     mesh = sharding.make_mesh()
     n = mesh.devices.size
     context = dict(batch=args.batch, steps=args.steps, robots=args.robots, env_steps=args.env_steps,
+                   collect_steps=args.collect_steps,
                    model="paper CARLA CAPs (50x100x1, H=12)", mesh_devices=n)
     out = {}
     out["train"] = emit(f"scale.train_samples_per_s_{suffix}", train_samples_per_s(mesh, args.batch, args.steps, args.repeats),
                         "samples/s", **context)["value"]
     out["env"] = emit(f"scale.env_steps_per_s_{suffix}", env_steps_per_s(mesh, args.robots, args.env_steps, args.repeats),
                       "steps/s", **context)["value"]
+    out["collect"] = emit(f"scale.collect_steps_per_s_{suffix}",
+                          collect_steps_per_s(mesh, args.robots, args.collect_steps, args.repeats),
+                          "steps/s", **context)["value"]
     return out
 
 
@@ -117,6 +147,7 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--steps", type=int, default=10, help="training steps per timed chunk")
     parser.add_argument("--robots", type=int, default=64)
     parser.add_argument("--env-steps", type=int, default=100)
+    parser.add_argument("--collect-steps", type=int, default=20_000, help="committed steps per timed collection")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--worker", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -137,11 +168,11 @@ def main(argv: list[str]) -> None:
             if line.startswith("{"):
                 print(line, flush=True)
                 record = json.loads(line)
-                results[n]["train" if ".train_" in record["metric"] else "env"] = record["value"]
+                results[n][record["metric"].split(".")[1].split("_")[0]] = record["value"]
     base = min(counts)
     for n in counts:
         if n != base:
-            for what in ("train", "env"):
+            for what in ("train", "env", "collect"):
                 emit(f"scale.{what}_ratio_{n}dev_vs_{base}dev", results[n][what] / results[base][what], "ratio",
                      note="forced CPU devices share the same cores: no speed-up is expected")
     if jax.default_backend() == "gpu":
