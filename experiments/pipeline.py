@@ -8,7 +8,7 @@ stage so an interrupted run resumes where it stopped:
 * the dataset (``<data_dir>/dataset.zarr``) is appended to until it holds the preset's steps;
 * the learned labeller is saved once and its labels written beside the episodes (``relabel``);
 * CAPs and each baseline train from their latest orbax checkpoint to the preset's steps;
-* evaluation results are saved per method (``<run>/eval/<method>.npz``) and reused when present.
+* each method's evaluation is saved (``<run>/eval/<method>.npz``, keyed by the method and preset) and reused.
 
 Training never sees an evaluation task: training data come from the env's 'train' task stream (layouts,
 paths, goals), evaluation tasks from its disjoint 'eval' stream seeded by ``--seed``.
@@ -306,9 +306,17 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
 
     tasks = eval_tasks(env, preset, cfg.seed)
     cem = cem_config(preset, env, preset.horizon)
-    trajectories, per_episode = {}, {}
+    poses, per_episode = {}, {}
     for method in methods:
         t = time.time()
+        cache = run_dir / "eval" / f"{method.name}.npz"
+        key = json.dumps({"method": dataclasses.asdict(method), "preset": dataclasses.asdict(preset),
+                          "data_dir": str(data_dir)}, sort_keys=True, default=str)
+        cached = _load_eval(cache, key)
+        if cached is not None:
+            poses[method.name], per_episode[method.name] = cached
+            log(exp, f"eval {method.name}: reused {cache}")
+            continue
         spec = method_spec(method, model)
         if method.kind == "caps":
             policy = mpc.caps_policy(model, cem)
@@ -318,8 +326,9 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
                 env.spec.plan_low, env.spec.plan_high, horizon=1, init_samples=init, samples=samples,
                 iterations=iterations, elites=elites))
         traj = jax.device_get(evaluate(exp, preset, env, method, policy, params[method.kind], spec, tasks, cfg.seed))
-        trajectories[method.name] = traj
+        poses[method.name] = np.asarray(traj.pose)
         per_episode[method.name] = {k: np.asarray(v) for k, v in exp.episode_metrics(traj, env).items()}
+        _save_eval(cache, key, poses[method.name], per_episode[method.name])
         timings[f"eval_{method.name}_s"] = time.time() - t
         log(exp, f"eval {method.name}: " + ", ".join(f"{k} {np.mean(v):.3f}" for k, v in per_episode[method.name].items())
             + f" ({timings[f'eval_{method.name}_s']:.0f} s)")
@@ -341,7 +350,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     (run_dir / "table.md").write_text(report.table(metrics, exp.columns, exp.paper, title=f"{exp.name} ({cfg.preset})",
                                                    notes=notes))
     t = time.time()
-    write_figures(exp, preset, env, run_dir, tasks, trajectories, model, params.get("caps"),
+    write_figures(exp, preset, env, run_dir, tasks, poses, model, params.get("caps"),
                   next((m for m in methods if m.kind == "caps"), None), cem, cfg.seed)
     timings["figures_s"] = time.time() - t
     report.write_json(run_dir / "metrics.json", dict(out, timings_s=timings))
@@ -377,13 +386,13 @@ def holdout_losses(model, params, ds, holdout_ids, preset: Preset, label_sources
     return {k: float(v) for k, v in m.items()}
 
 
-def write_figures(exp, preset, env, run_dir: Path, tasks, trajectories, model, caps_params, caps_method, cem, seed):
+def write_figures(exp, preset, env, run_dir: Path, tasks, poses, model, caps_params, caps_method, cem, seed):
     panels = []
     reset = jax.jit(env.reset)
     for i in range(min(3, preset.eval_episodes)):
         task = jax.tree.map(lambda x: x[i], tasks)
         first = reset(jax.random.key(0), task)
-        drives = {name: np.asarray(traj.pose[i]) for name, traj in trajectories.items()}
+        drives = {name: pose[i] for name, pose in poses.items()}
         panels.append({"scene": first.physics.scene, "task": task, "drives": drives,
                        "first_pose": np.asarray(first.info["pose"]), "title": f"eval task {i} (seed {seed})"})
     train_task = env.sample_task(jax.random.key(0), "train")
@@ -410,3 +419,20 @@ def episode_mean(traj, signal: str) -> np.ndarray:
     values, done = np.asarray(traj.signals[signal]), np.asarray(traj.done)
     active = np.concatenate([np.ones_like(done[:, :1]), ~done[:, :-1]], axis=1)
     return (values * active).sum(1) / np.maximum(active.sum(1), 1)
+
+
+def _save_eval(path: Path, key: str, pose: np.ndarray, per_episode: dict) -> None:
+    """One method's evaluation (poses and per-episode metrics), keyed by everything that produced it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, key=np.asarray(key), pose=pose, **{f"metric/{k}": v for k, v in per_episode.items()})
+    tmp.replace(path)
+
+
+def _load_eval(path: Path, key: str):
+    if not path.exists():
+        return None
+    with np.load(path) as f:
+        if str(f["key"]) != key:
+            return None  # another method definition or preset: evaluate again
+        return f["pose"], {k.split("/", 1)[1]: f[k] for k in f.files if k.startswith("metric/")}
