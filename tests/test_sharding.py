@@ -122,6 +122,7 @@ def _run_four_devices(mode: str, out, tmp_path) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=600, check=False)
 
 
+@pytest.mark.slow  # ~70 s: a 4-device training step, closed-loop episodes and checkpoint restores
 def test_four_devices_match_one(tmp_path):
     out = tmp_path / "results.json"
     proc = _run_four_devices("check", out, tmp_path)
