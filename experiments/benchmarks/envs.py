@@ -13,7 +13,7 @@ Per scene, JSON lines (``experiments.bench.emit``):
 
 Compilation dominates the run time (MJX's step takes most of a minute to compile on a 2-core CPU): the
 scene's functions are compiled in parallel threads first, and ``--batches`` / ``--scenes`` shrink the run.
-Timings are medians over ``--repeats`` runs.
+Timings are medians over ``--repeats`` samples, each of back-to-back calls for at least 0.3 s.
 """
 from __future__ import annotations
 
@@ -30,12 +30,19 @@ from envs.camera import mjx_ray_depth, render
 from experiments.bench import emit
 
 
-def _median_time(fn, repeats: int) -> float:
+def _median_time(fn, repeats: int, min_seconds: float = 0.3) -> float:
+    """Median over ``repeats`` samples of the seconds per call; each sample calls ``fn`` back to back
+    for at least ``min_seconds`` (a single millisecond call is mostly timer and scheduler noise)."""
+    jax.block_until_ready(fn())  # warm: first-call allocations are not part of the figure
     times = []
     for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
+        calls, start = 0, time.perf_counter()
+        while True:
+            jax.block_until_ready(fn())
+            calls += 1
+            if time.perf_counter() - start >= min_seconds:
+                break
+        times.append((time.perf_counter() - start) / calls)
     return float(np.median(times))
 
 
