@@ -7,7 +7,7 @@ single horizontal ray.  We therefore
 
 1. cast one 2-D ray per column against every circle (analytic ray-circle) and every oriented box (slab
    test in the box frame) -> entry distances, an [N, W] problem;
-2. keep the K nearest primitives of each column (``CameraConfig.max_hits``, an insertion network);
+2. keep the K nearest primitives of each column (``CameraConfig.max_hits``, K argmin passes over N);
 3. per pixel, intersect the pixel's ray (known slope dz/dt over horizontal distance t) with those K
    candidates in the column's vertical plane -- wall face (z within [0, h] at the entry distance), the
    capsule's top dome, a box top -- and with the ground / ceiling planes, and keep the nearest;
