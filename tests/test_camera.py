@@ -227,3 +227,22 @@ def test_pixel_rays_camera_model():
     centre_elev = np.degrees(np.arcsin((dirs[17, 32, 2] + dirs[18, 32, 2]) / 2))
     assert abs(centre_elev + cfg.pitch_deg) < 1.5
     assert abs(cfg.pitch_deg - 3.9) < 0.05
+
+
+def test_grayscale_is_the_papers_weighting_of_the_colour_image():
+    # A grayscale camera renders one channel with the colours projected by the paper's weights; it must
+    # be the weighting of the RGB image of the same view (up to the rounding of each 8-bit channel).
+    scene = forest_scene()
+    rgb_cfg = dataclasses.replace(FOREST_CAMERA, width=48, height=24)
+    gray_cfg = dataclasses.replace(rgb_cfg, grayscale=True)
+    for pose in POSES[:3]:
+        rgb, sem_rgb, depth_rgb = render(scene, pose, rgb_cfg)
+        gray, sem_gray, depth_gray = render(scene, pose, gray_cfg)
+        expected = np.asarray(rgb, np.float64) @ np.asarray([0.299, 0.587, 0.114])
+        assert np.abs(np.asarray(gray[..., 0], np.float64) - expected).max() <= 1.0
+        np.testing.assert_array_equal(sem_rgb, sem_gray)
+        np.testing.assert_array_equal(depth_rgb, depth_gray)
+        # The channels are distinct and in order: the scene's grass ground is greener than it is red.
+        ground = np.asarray(sem_rgb) == S.GRASS
+        if ground.any():
+            assert np.asarray(rgb)[ground][:, 1].mean() > np.asarray(rgb)[ground][:, 0].mean()
