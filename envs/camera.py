@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -393,7 +394,9 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     if len(channels) == 1:
         image = channels[0][..., None]
     else:
-        packed = sum(ch.astype(jnp.uint32) << (8 * i) for i, ch in enumerate(channels))
+        # Byte i of the word is channel i in memory order (the bitcast reinterprets the host's bytes).
+        shifts = [8 * i if sys.byteorder == "little" else 8 * (3 - i) for i in range(len(channels))]
+        packed = sum(ch.astype(jnp.uint32) << shift for ch, shift in zip(channels, shifts))
         image = jax.lax.bitcast_convert_type(packed, jnp.uint8)[..., : len(channels)]
     return image, semantic.astype(jnp.uint8), depth.astype(jnp.float32)
 
