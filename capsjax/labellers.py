@@ -11,7 +11,9 @@ Learned labeller (bottom): a compact fully convolutional encoder-decoder (``Segm
 separates a few classes from "other" -- the city's {other, road, lane_line}, so the *same*
 ``right_lane_mask`` rule runs on the predicted map as on the true one; the halls' {other, door}.  It
 trains (``train_segmenter``) on the ground-truth maps of a small labelled fraction of frames with a
-class-balanced cross-entropy, optax Adam, all steps of a chunk under one jit.  ``make_cue_labeller``
+class-balanced cross-entropy, optax Adam, all steps of a chunk under one jit, and then stores the
+training maps' class frequencies beside its weights to undo the balancing at prediction time (see
+``balanced_cross_entropy``).  ``make_cue_labeller``
 turns trained params into a jitted ``images u8[b, h, w, c] -> {cue: f32[b]}`` for (re)labelling
 datasets.  Why not the paper's FCN-16s on VGG-16: 134 M parameters pretrained on ImageNet do not train
 on a 2-core CPU, and the clean renders need far less (26k-63k parameters here).
@@ -92,6 +94,7 @@ def door_frac(semantic: jax.Array, *, door_id: int) -> jax.Array:
 # ------------------------------------------------------------------------------------ learned labellers
 
 OTHER_ID = 255  # semantic id written for the predicted "other" class (no scene uses it)
+CALIBRATION = "calibration"  # variable collection of the segmenter's class prior (not trained by gradient)
 LANE_CUES = ("lane_seen", "lane_diff")
 DOOR_CUES = ("door_frac",)
 
@@ -217,7 +220,9 @@ class _EncoderDecoder(nn.Module):
     stem_stride: int
 
     @nn.compact
-    def __call__(self, images: jax.Array) -> jax.Array:
+    def __call__(self, images: jax.Array, calibrated: bool = True) -> jax.Array:
+        # Not trained by gradient: ``train_segmenter`` sets it to the training maps' log class frequencies.
+        log_prior = self.variable(CALIBRATION, "log_prior", lambda: jnp.zeros((self.num_classes,), jnp.float32))
         x = images.astype(jnp.float32) / 127.5 - 1.0
         skips = []
         for level, f in enumerate(self.features):
@@ -232,7 +237,7 @@ class _EncoderDecoder(nn.Module):
         logits = nn.Conv(self.num_classes, (1, 1))(x)
         if logits.shape[1:3] != images.shape[1:3]:
             logits = jax.image.resize(logits, images.shape[:3] + logits.shape[-1:], "bilinear")
-        return logits
+        return logits + log_prior.value if calibrated else logits
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,13 +252,16 @@ class Segmenter:
         return _EncoderDecoder(cfg.features, cfg.num_classes, cfg.stem_stride)
 
     def init(self, key: jax.Array):
+        """Variables ``{"params": weights, "calibration": {"log_prior": f32[num_classes]}}`` (a zero prior:
+        an untrained net predicts its plain argmax)."""
         # Jitted: one compile instead of eagerly dispatching (and compiling) every initialiser op.
         return jax.jit(self.network.init)(key, jnp.zeros((1,) + self.config.image_shape, jnp.uint8))
 
-    def apply(self, params, images: jax.Array) -> jax.Array:
-        """f32[b, h, w, num_classes] logits of frames ``u8[b, h, w, c]``."""
+    def apply(self, params, images: jax.Array, calibrated: bool = True) -> jax.Array:
+        """f32[b, h, w, num_classes] logits of frames ``u8[b, h, w, c]``; ``calibrated`` adds the stored
+        log class prior (the logits whose argmax is the prediction), otherwise the raw trained logits."""
         check_images(self.config, images)
-        return self.network.apply(params, images)
+        return self.network.apply(params, images, calibrated)
 
     def predict_semantic(self, params, images: jax.Array) -> jax.Array:
         """u8[b, h, w] predicted semantic ids (``OTHER_ID`` where none of the classes)."""
@@ -265,7 +273,14 @@ def balanced_cross_entropy(logits: jax.Array, targets: jax.Array) -> jax.Array:
 
     The mean over present classes of each class's mean pixel loss, i.e. pixel weights inversely
     proportional to the class's frequency in the batch (the multi-class form of the paper's #neg/#pos
-    positive weight): thin lane lines (~1 % of the pixels) count as much as the road.
+    positive weight): thin lane lines (~1 % of the pixels) count as much as the road, so they are learnt.
+
+    The price: this loss is minimised by ``softmax(logits) ~ p(class | pixel) / prior(class)``, so its
+    argmax over-predicts rare classes (lane lines came out about twice as thick as true, which flips
+    the paper's "lines > 0.3 % of the image" rule and so lane_seen).  ``train_segmenter`` therefore
+    stores ``log prior`` (the training maps' class frequencies) and the segmenter adds it to the logits
+    before the argmax (logit adjustment; ``SegmenterTrainConfig.prior_correction``), which turns the
+    balanced scores back into posteriors.
     """
     num_classes = logits.shape[-1]
     ce = optax.softmax_cross_entropy_with_integer_labels(logits, targets.astype(jnp.int32))
@@ -283,6 +298,9 @@ class SegmenterTrainConfig:
     Adam (eps 1e-4 as the paper's FCN) with a cosine decay of the learning rate over the run; a larger
     rate than the paper's 1e-4 because the net is small and trained from scratch for few steps.
     ``flip``: random horizontal flips (segmentation is flip-equivariant; the lane rule runs after it).
+    ``prior_correction`` (tau): the stored calibration is ``tau * log(class frequency)`` of the training
+    maps; 1 is the exact correction of the class-balanced loss (``balanced_cross_entropy``), 0 keeps
+    the balanced argmax.
     """
 
     batch_size: int = 16
@@ -290,6 +308,7 @@ class SegmenterTrainConfig:
     final_lr_fraction: float = 0.05
     adam_eps: float = 1e-4
     flip: bool = True
+    prior_correction: float = 1.0
     chunk: int = 100  # steps per jitted call (progress is reported between chunks)
 
     def __post_init__(self):
@@ -301,6 +320,8 @@ class SegmenterTrainConfig:
                 raise ValueError(f"SegmenterTrainConfig.{name} must be positive, got {getattr(self, name)}")
         if not 0 <= self.final_lr_fraction <= 1:
             raise ValueError(f"SegmenterTrainConfig.final_lr_fraction must be in [0, 1], got {self.final_lr_fraction}")
+        if not 0 <= self.prior_correction <= 1:
+            raise ValueError(f"SegmenterTrainConfig.prior_correction must be in [0, 1], got {self.prior_correction}")
 
 
 def _check_semantic(cfg: SegmenterConfig, images, semantic) -> None:
@@ -310,15 +331,26 @@ def _check_semantic(cfg: SegmenterConfig, images, semantic) -> None:
                          f"{np.asarray(semantic).dtype}{list(np.shape(semantic))}")
 
 
+def class_log_prior(cfg: SegmenterConfig, semantic) -> jax.Array:
+    """f32[num_classes]: log of each network class's pixel frequency in true maps ``[n, h, w]``.
+
+    A class absent from the maps gets the frequency of one pixel (finite, so it can still be predicted).
+    """
+    counts = np.bincount(np.asarray(class_targets(cfg, semantic)).ravel(), minlength=cfg.num_classes)
+    return jnp.asarray(np.log(np.maximum(counts, 1) / max(int(counts.sum()), 1)), jnp.float32)
+
+
 def train_segmenter(cfg: SegmenterConfig, images, semantic, key: jax.Array, steps: int,
                     train_cfg: SegmenterTrainConfig = SegmenterTrainConfig(), *, params=None,
                     progress: Callable[[int, float], None] | None = None):
-    """Train the segmenter on labelled frames; returns ``(params, losses f32[steps])``.
+    """Train the segmenter on labelled frames; returns ``(variables, losses f32[steps])``.
 
     ``images u8[n, h, w, c]`` and their true ``semantic`` maps ``[n, h, w]`` stay on the device; each
-    step draws a batch uniformly with replacement.  Steps run in chunks (``training.repeat_steps``:
-    one ``lax.scan`` on accelerators, jitted steps from a host loop on CPU); ``progress(steps_done, mean_loss_of_chunk)`` is called between chunks.  ``params``
-    continues from earlier params instead of a fresh init.
+    step draws a batch uniformly with replacement and minimises ``balanced_cross_entropy`` of the raw
+    logits.  Steps run in chunks (``training.repeat_steps``: one ``lax.scan`` on accelerators, jitted
+    steps from a host loop on CPU); ``progress(steps_done, mean_loss_of_chunk)`` is called between
+    chunks.  ``params`` (variables of an earlier run) continues training instead of a fresh init.  The
+    returned variables carry the calibration ``prior_correction * class_log_prior`` of these maps.
     """
     check_images(cfg, images)
     _check_semantic(cfg, images, semantic)
@@ -326,17 +358,19 @@ def train_segmenter(cfg: SegmenterConfig, images, semantic, key: jax.Array, step
         raise ValueError(f"steps must be positive, got {steps}")
     segmenter = Segmenter(cfg)
     init_key, key = jax.random.split(key)
-    params = segmenter.init(init_key) if params is None else params
+    variables = segmenter.init(init_key) if params is None else params
     schedule = optax.cosine_decay_schedule(train_cfg.learning_rate, steps, alpha=train_cfg.final_lr_fraction)
     optimizer = optax.adam(schedule, eps=train_cfg.adam_eps)
     images = jnp.asarray(images)
     targets = class_targets(cfg, semantic)
+    calibration = variables[CALIBRATION]  # rides along unused: the loss reads the raw logits
 
-    def loss_fn(p, x, y):
-        return balanced_cross_entropy(segmenter.network.apply(p, x), y)
+    def loss_fn(weights, x, y):
+        logits = segmenter.network.apply({"params": weights, CALIBRATION: calibration}, x, False)
+        return balanced_cross_entropy(logits, y)
 
     def step(carry, _, frames, frame_targets):
-        p, opt_state, k = carry
+        weights, opt_state, k = carry
         k, k_idx, k_flip = jax.random.split(k, 3)
         idx = jax.random.randint(k_idx, (train_cfg.batch_size,), 0, frames.shape[0])
         x, y = frames[idx], frame_targets[idx]
@@ -344,14 +378,15 @@ def train_segmenter(cfg: SegmenterConfig, images, semantic, key: jax.Array, step
             flip = jax.random.bernoulli(k_flip, 0.5, (train_cfg.batch_size,))
             x = jnp.where(flip[:, None, None, None], x[:, :, ::-1], x)
             y = jnp.where(flip[:, None, None], y[:, :, ::-1], y)
-        loss, grads = jax.value_and_grad(loss_fn)(p, x, y)
-        updates, opt_state = optimizer.update(grads, opt_state, p)
-        return (optax.apply_updates(p, updates), opt_state, k), loss
+        loss, grads = jax.value_and_grad(loss_fn)(weights, x, y)
+        updates, opt_state = optimizer.update(grads, opt_state, weights)
+        return (optax.apply_updates(weights, updates), opt_state, k), loss
 
     from capsjax.training import repeat_steps  # one scan on accelerators, a host loop of jitted steps on CPU
 
     runners = {}  # one compiled runner per chunk length (at most two: the chunk and the remainder)
-    carry, losses, done = (params, optimizer.init(params), key), [], 0
+    weights = variables["params"]
+    carry, losses, done = (weights, optimizer.init(weights), key), [], 0
     while done < steps:
         n = min(train_cfg.chunk, steps - done)
         if n not in runners:
@@ -361,7 +396,8 @@ def train_segmenter(cfg: SegmenterConfig, images, semantic, key: jax.Array, step
         done += n
         if progress is not None:
             progress(done, float(np.mean(losses[-1])))
-    return carry[0], np.concatenate(losses)
+    log_prior = train_cfg.prior_correction * class_log_prior(cfg, semantic)
+    return {"params": carry[0], CALIBRATION: {"log_prior": log_prior}}, np.concatenate(losses)
 
 
 def learned_cue_labels(cfg: SegmenterConfig, predicted: jax.Array) -> dict[str, jax.Array]:
@@ -528,5 +564,10 @@ def load_labeller(path) -> CueLabeller:
         raise ValueError(f"path: {path} holds no saved labeller (expected {path / 'config.json'})")
     cfg = SegmenterConfig(**json.loads((path / "config.json").read_text()))
     abstract = jax.eval_shape(Segmenter(cfg).init, jax.random.key(0))
-    params = ocp.StandardCheckpointer().restore(path / "params", abstract)
+    checkpointer = ocp.StandardCheckpointer()
+    if CALIBRATION in checkpointer.metadata(path / "params").item_metadata.tree:
+        params = checkpointer.restore(path / "params", abstract)
+    else:  # saved before labellers stored a class prior: it predicts its plain (balanced) argmax, as then
+        weights = checkpointer.restore(path / "params", {"params": abstract["params"]})["params"]
+        params = {"params": weights, CALIBRATION: {"log_prior": jnp.zeros((cfg.num_classes,), jnp.float32)}}
     return CueLabeller(cfg, params)

@@ -5,7 +5,8 @@ Frames.  For each scene, robots drive the MJX env with uniformly random actions 
 (vmap over robots, ``lax.scan`` over steps, auto-reset after a crash or ``episode_length`` steps):
 ``--train-robots x --train-steps-per-robot`` steps on *training* tasks stand for the collected dataset
 (25,600 steps by default), and ``--train-frames`` of them (256 = 1.0 %; the paper's labelled fraction
-was 0.2 %) are drawn at random to be the hand-labelled frames the segmenter trains on.  Only the poses
+was 0.2 %) are drawn at random to be the hand-labelled frames the segmenter trains on (class-balanced
+loss, then the training maps' class prior stored for calibrated predictions: ``--prior-correction``).  Only the poses
 are kept while driving; the drawn frames are rendered afterwards with their true class maps (the
 camera is exact, so this is the frame the robot saw).  Evaluation frames come from *held-out episodes*
 on the 'eval' split: disjoint layout seeds (and, in the halls, the other driving direction).
@@ -64,6 +65,10 @@ class Config:
     episode_length: int = 128
     """Control steps before an episode is cut (crashes end it sooner)."""
     batch_size: int = 8
+    prior_correction: float = 1.0
+    """Calibration of the class-balanced segmenter: its logits get ``tau * log(class frequency)`` of the
+    training maps before the argmax (1: the exact correction of the balanced loss; 0: none, the balanced
+    argmax, which over-predicts thin lane lines)."""
 
 
 # Per scene: which classes the segmenter separates, its size, and its default number of steps.  The city
@@ -196,7 +201,7 @@ def run_scene(cfg: Config, scene: str, run_dir: Path) -> dict:
         bar.update(done - bar.n)
         bar.set_postfix(loss=f"{loss:.4f}")
 
-    train_cfg = labellers.SegmenterTrainConfig(batch_size=cfg.batch_size)
+    train_cfg = labellers.SegmenterTrainConfig(batch_size=cfg.batch_size, prior_correction=cfg.prior_correction)
     params, losses = labellers.train_segmenter(seg_cfg, train_images, train_sem, k_fit, steps, train_cfg, progress=progress)
     bar.close()
     timings["train_s"] = time.time() - t
@@ -214,6 +219,7 @@ def run_scene(cfg: Config, scene: str, run_dir: Path) -> dict:
     context = dict(scene=scene, train_frames=cfg.train_frames, dataset_steps=dataset_steps,
                    labelled_fraction=fraction, eval_frames=cfg.eval_frames, steps=steps, seed=cfg.seed,
                    features=list(seg_cfg.features), stem_stride=seg_cfg.stem_stride,
+                   prior_correction=cfg.prior_correction,
                    train_s=round(timings["train_s"], 1))
     for name, value in metrics.items():
         if name != "frames":

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from capsjax.labellers import (
+    CALIBRATION,
     LEARNED_SEEN_FRAC,
     OTHER_ID,
     CueLabeller,
@@ -13,6 +14,7 @@ from capsjax.labellers import (
     SegmenterTrainConfig,
     balanced_cross_entropy,
     class_index_to_semantic,
+    class_log_prior,
     class_targets,
     cue_labels,
     door_frac,
@@ -211,6 +213,38 @@ def test_balanced_cross_entropy_weights_classes_equally():
     np.testing.assert_allclose(float(balanced_cross_entropy(logits, jnp.asarray(targets))), expected, rtol=1e-5)
 
 
+def test_class_prior_turns_balanced_scores_into_posteriors():
+    """Free logits fitted with the balanced loss to pixels whose classes have frequencies (0.9, 0.08, 0.02)
+    score every class alike (the balanced minimiser); adding the stored log prior gives back the true
+    posterior, so the argmax no longer over-predicts the rare classes."""
+    cfg = SegmenterConfig("city", (4, 50, 1), road_id=ROAD, line_id=LINE)
+    sem = np.full((1, 4, 50), GRASS, np.uint8)
+    sem[0, :, :4] = ROAD  # 8 % road
+    sem[0, 0, 4:8] = LINE  # 2 % line
+    targets = class_targets(cfg, sem)
+    logits = jnp.zeros(3)
+    grad = jax.jit(jax.grad(lambda z: balanced_cross_entropy(jnp.broadcast_to(z, targets.shape + (3,)), targets)))
+    for _ in range(300):
+        logits = logits - 1.0 * grad(logits)
+    np.testing.assert_allclose(np.asarray(jax.nn.softmax(logits)), [1 / 3] * 3, atol=1e-3)
+    np.testing.assert_allclose(np.asarray(class_log_prior(cfg, sem)), np.log([0.9, 0.08, 0.02]), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(jax.nn.softmax(logits + class_log_prior(cfg, sem))), [0.9, 0.08, 0.02],
+                               atol=1e-3)
+    # A class absent from the maps keeps a finite prior (one pixel's worth).
+    assert np.isfinite(np.asarray(class_log_prior(cfg, np.full((1, 4, 50), GRASS, np.uint8)))).all()
+
+
+def test_stored_prior_moves_the_prediction(lane_labeller):
+    images = np.random.default_rng(0).integers(0, 255, (2, H, W, 1)).astype(np.uint8)
+    params = lane_labeller.params
+    np.testing.assert_array_equal(np.asarray(params[CALIBRATION]["log_prior"]), 0.0)  # untrained: plain argmax
+    raw = Segmenter(LANE_CFG).apply(params, images, calibrated=False)
+    np.testing.assert_array_equal(np.asarray(Segmenter(LANE_CFG).apply(params, images)), np.asarray(raw))
+    line_everywhere = {**params, CALIBRATION: {"log_prior": jnp.asarray([0.0, 0.0, 1e3])}}
+    predicted = Segmenter(LANE_CFG).predict_semantic(line_everywhere, images)
+    assert (np.asarray(predicted) == LINE).all()
+
+
 def optax_ce(logits, targets):
     logp = jax.nn.log_softmax(logits)
     return -jnp.take_along_axis(logp, jnp.asarray(targets, jnp.int32)[..., None], axis=-1)[..., 0]
@@ -224,6 +258,7 @@ def test_segmenter_learns_synthetic_doors():
     params, losses = train_segmenter(DOOR_CFG, images, sem, jax.random.key(0), steps,
                                      SegmenterTrainConfig(batch_size=8, learning_rate=1e-2, chunk=steps))
     assert losses.shape == (steps,) and np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10])
+    np.testing.assert_allclose(np.asarray(params[CALIBRATION]["log_prior"]), np.asarray(class_log_prior(DOOR_CFG, sem)))
     labeller = make_cue_labeller(DOOR_CFG, params)
     m = evaluate_labeller(labeller, test_images, test_sem, batch_size=16)
     assert m["door_iou"] > 0.8 and m["door_frac_mae"] < 0.03, m
@@ -288,3 +323,18 @@ def test_save_and_load_labeller(tmp_path, lane_labeller):
     assert sorted((p.relative_to(path), p.stat().st_mtime_ns) for p in path.rglob("*")) == before
     with pytest.raises(ValueError, match="holds no saved labeller"):
         load_labeller(tmp_path / "nothing")
+
+
+def test_load_labeller_saved_without_class_prior(tmp_path, lane_labeller):
+    """A labeller saved before labellers stored a class prior still loads, and predicts as it did then."""
+    import orbax.checkpoint as ocp
+
+    images = np.random.default_rng(1).integers(0, 255, (3, H, W, 1)).astype(np.uint8)
+    trained = {**lane_labeller.params, CALIBRATION: {"log_prior": jnp.asarray([0.0, -1.0, -4.0])}}
+    old = save_labeller(tmp_path / "old", CueLabeller(LANE_CFG, {"params": trained["params"]}))
+    loaded = load_labeller(old)
+    np.testing.assert_array_equal(np.asarray(loaded.params[CALIBRATION]["log_prior"]), 0.0)
+    np.testing.assert_array_equal(np.asarray(loaded(images)["lane_diff"]), np.asarray(lane_labeller(images)["lane_diff"]))
+    assert ocp.StandardCheckpointer().metadata(old / "params").item_metadata.tree.keys() == {"params"}  # untouched
+    new = load_labeller(save_labeller(tmp_path / "new", CueLabeller(LANE_CFG, trained)))
+    np.testing.assert_array_equal(np.asarray(new.params[CALIBRATION]["log_prior"]), [0.0, -1.0, -4.0])
