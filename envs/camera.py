@@ -50,6 +50,7 @@ from envs.scene import CEILING, SCENE_GEOMGROUP, SKY, Scene
 
 _BIG = 1e30  # "no hit" distance inside the computation (finite, so products never make NaN)
 _GROUND, _CEIL = -1, -2  # per-pixel surface codes besides the candidate index 0..K-1
+_GATHER_PATCHES = 4  # more ground patches than this: per-pixel table look-ups instead of select chains
 
 
 @dataclasses.dataclass(frozen=True)
@@ -196,13 +197,14 @@ def _nearest_ids(scene: Scene, cam, dx, dy, k: int) -> jax.Array:
     ci, _, _, _, chit = _circle_hits(c[:, :1], c[:, 1:2], c[:, 2:3], cam, dx, dy)
     bi, _, _, bhit = _box_hits(b[:, :1], b[:, 1:2], b[:, 2:3], b[:, 3:4], b[:, 4:5], cam, dx, dy)
     entry = jnp.concatenate([jnp.where(chit, ci, _BIG), jnp.where(bhit, bi, _BIG)], 0)  # [N, W]
-    rows = jnp.arange(entry.shape[0], dtype=jnp.int32)[:, None]
+    n = entry.shape[0]
+    rows = jnp.arange(n, dtype=jnp.int32)[:, None]
     ids = []
     for _ in range(k):
-        taken = jnp.zeros(entry.shape, bool)
-        for i in ids:
-            taken = taken | (rows == i)
-        ids.append(jnp.argmin(jnp.where(taken, 2 * _BIG, entry), axis=0).astype(jnp.int32))
+        nearest = jnp.min(entry, axis=0)
+        i = jnp.min(jnp.where(entry == nearest, rows, n), axis=0)
+        ids.append(i)
+        entry = jnp.where(rows == i, 2 * _BIG, entry)
     return jnp.stack(ids)
 
 
@@ -212,7 +214,7 @@ def _column_data(scene: Scene, cam, dx, dy, ids, cfg: CameraConfig, weights: np.
     Besides distances this precomputes what is constant along a column: the wall's Lambert term (its
     normal is horizontal and fixed per column) and the affine pieces of the dome's Lambert term.
     """
-    nc = scene.circles.shape[0]
+    nc, nb = scene.circles.shape[0], scene.boxes.shape[0]
     table = jnp.concatenate([
         jnp.stack([scene.circles[:, 0], scene.circles[:, 1], scene.circles[:, 2], jnp.zeros_like(scene.circles[:, 0]),
                    jnp.zeros_like(scene.circles[:, 0]), scene.circles[:, 3]], 0),
@@ -221,24 +223,33 @@ def _column_data(scene: Scene, cam, dx, dy, ids, cfg: CameraConfig, weights: np.
     x, y, a, bb, yaw, hgt = (jnp.take(table[i], ids, mode="clip") for i in range(6))
     cls = jnp.take(jnp.concatenate([scene.circle_class, scene.box_class]).astype(jnp.int32), ids, mode="clip")
     colors = jnp.concatenate([scene.circle_color, scene.box_color], 0)
-    circ = ids < nc
-    ct_in, ct_out, tc, half, chit = _circle_hits(x, y, a, cam, dx, dy)
-    bt_in, bt_out, (bnx, bny), bhit = _box_hits(x, y, a, bb, yaw, cam, dx, dy)
-    t_in = jnp.where(circ, ct_in, bt_in)
-    # Circle normal at the entry point, turned toward the camera (it faces away only from inside).
-    inv_r = 1.0 / jnp.maximum(a, 1e-6)
-    cnx, cny = (cam[0] + ct_in * dx - x) * inv_r, (cam[1] + ct_in * dy - y) * inv_r
-    flip = jnp.where(cnx * dx + cny * dy > 0, -1.0, 1.0)
-    nx, ny = jnp.where(circ, flip * cnx, bnx), jnp.where(circ, flip * cny, bny)
     lx, ly, lz = _light(cfg)
-    return dict(
-        valid=jnp.where(circ, chit, bhit), circ=circ, t_in=t_in, t_out=jnp.where(circ, ct_out, bt_out),
-        tc=tc, half=jnp.where(circ, half, 0.0), height=hgt, cls=cls,
-        color=jnp.stack([jnp.take(col, ids, mode="clip") for col in (colors @ weights.T).T]),  # [C, W]
-        wall_light=jnp.maximum(nx * lx + ny * ly, 0.0),
+    out = dict(height=hgt, cls=cls, color=jnp.stack([jnp.take(col, ids, mode="clip") for col in (colors @ weights.T).T]))  # [C, W]
+    # A scene without circles (or without boxes) skips the other kind's math: the counts are static.
+    if nc:
+        ct_in, ct_out, tc, half, chit = _circle_hits(x, y, a, cam, dx, dy)
+        # Circle normal at the entry point, turned toward the camera (it faces away only from inside).
+        inv_r = 1.0 / jnp.maximum(a, 1e-6)
+        cnx, cny = (cam[0] + ct_in * dx - x) * inv_r, (cam[1] + ct_in * dy - y) * inv_r
+        flip = jnp.where(cnx * dx + cny * dy > 0, -1.0, 1.0)
+        cnx, cny = flip * cnx, flip * cny
         # dome Lambert = (t * (dx lx + dy ly + s lz) + dome_c) / r, t the horizontal hit distance
-        dome_c=((cam[0] - x) * lx + (cam[1] - y) * ly + (cam[2] - hgt) * lz) * inv_r, inv_r=inv_r,
-    )
+        out.update(tc=tc, inv_r=inv_r, dome_c=((cam[0] - x) * lx + (cam[1] - y) * ly + (cam[2] - hgt) * lz) * inv_r)
+    if nb:
+        bt_in, bt_out, (bnx, bny), bhit = _box_hits(x, y, a, bb, yaw, cam, dx, dy)
+    if nc and nb:
+        circ = ids < nc
+        out.update(circ=circ, valid=jnp.where(circ, chit, bhit), t_in=jnp.where(circ, ct_in, bt_in),
+                   t_out=jnp.where(circ, ct_out, bt_out), half=jnp.where(circ, half, 0.0))
+        nx, ny = jnp.where(circ, cnx, bnx), jnp.where(circ, cny, bny)
+    elif nc:
+        out.update(valid=chit, t_in=ct_in, t_out=ct_out, half=half)
+        nx, ny = cnx, cny
+    else:
+        out.update(valid=bhit, t_in=bt_in, t_out=bt_out)
+        nx, ny = bnx, bny
+    out["wall_light"] = jnp.maximum(nx * lx + ny * ly, 0.0)
+    return out
 
 
 def _light(cfg: CameraConfig) -> tuple[float, float, float]:
@@ -300,27 +311,41 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
 
         _, cand = jax.lax.scan(column, None, ids)  # [K, W] each
 
+        has_circles, has_boxes = scene.circles.shape[0] > 0, scene.boxes.shape[0] > 0
+
         def candidate(_, c):
             """Hit distance at every pixel of the k-th nearest primitive of each column ([W] values)."""
             hgt = c["height"]
             z_in = z0 + s * c["t_in"]  # ray height at the wall
             wall = c["valid"] & (z_in >= 0) & (z_in <= hgt)
             above = c["valid"] & (z_in > hgt)
-            # Dome: in the column's vertical plane a circle of radius ``half`` centred at (tc, height),
-            # solved around tc (u = t - tc) so float32 stays accurate far away.
-            q = (z0 - hgt) + s * c["tc"]
-            disc = c["half"] * c["half"] - q * q * inv_a
-            t_dome = c["tc"] - (s * q * inv_a + jnp.sqrt(jnp.maximum(disc, 0.0) * inv_a))
-            dome = above & c["circ"] & (disc >= 0) & (t_dome >= 0)
-            # Box top: seen only from above, i.e. for boxes lower than the camera.
-            t_top = (hgt - z0) * inv_down
-            top = above & ~c["circ"] & (s < 0) & (t_top <= c["t_out"])
-            return None, jnp.where(wall, c["t_in"], jnp.where(dome, t_dome, jnp.where(top, t_top, _BIG)))
+            t_other = _BIG
+            # (Scenes without circles or without boxes skip the other kind's test: shapes are static.)
+            if has_boxes:
+                # Box top: seen only from above, i.e. for boxes lower than the camera.
+                t_top = (hgt - z0) * inv_down
+                top = above & (s < 0) & (t_top <= c["t_out"])
+                if has_circles:
+                    top = top & ~c["circ"]
+                t_other = jnp.where(top, t_top, t_other)
+            if has_circles:
+                # Dome: in the column's vertical plane a circle of radius ``half`` centred at (tc, height),
+                # solved around tc (u = t - tc) so float32 stays accurate far away.
+                q = (z0 - hgt) + s * c["tc"]
+                disc = c["half"] * c["half"] - q * q * inv_a
+                t_dome = c["tc"] - (s * q * inv_a + jnp.sqrt(jnp.maximum(disc, 0.0) * inv_a))
+                dome = above & (disc >= 0) & (t_dome >= 0)
+                if has_boxes:
+                    dome = dome & c["circ"]
+                t_other = jnp.where(dome, t_dome, t_other)
+            return None, jnp.where(wall, c["t_in"], t_other)
 
         # Both loops are scans so that what they produce (column data, one distance plane per
         # candidate) are real buffers.  XLA on CPU otherwise fuses producers into every consumer and
         # recomputes them there (the column math and cos/sin of the pose per pixel, the K tests per
-        # output channel), which measured 5-10x slower.
+        # output channel), which measured 5-10x slower.  (Carrying the nearest distance and surface
+        # through the scan instead of K planes measured slower: XLA splits the update into three
+        # loops and copies the carry.)
         _, t_k = jax.lax.scan(candidate, None, cand)  # [K, H, W]
         for k in range(k_hits):
             closer = t_k[k] < t
@@ -343,14 +368,30 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     px, py, pz = cam_x + t * dx, cam_y + t * dy, z0 + s * t
     depth = jnp.where(hit, t * stretch, cfg.far)
 
-    # Ground paint (later patches on top): the patch index under each pixel, -1 for bare ground.
+    # Ground paint (later patches on top): the patch index under each ground pixel, -1 for bare ground.
+    # Only rows below the horizon can see the ground, and there t is the ground distance, so the index
+    # is computed on those rows from the constant t_ground (the same floats as px, py at ground pixels).
     num_patches = scene.patches.shape[0]
+    g0 = int(np.argmax(y_img < 0)) if (y_img < 0).any() else h  # first row that can see the ground
     patch = jnp.full((h, w), -1, jnp.int32)
-    for p in range(num_patches):
-        x0, y0, x1, y1 = (scene.patches[p, i] for i in range(4))
-        patch = jnp.where((px >= x0) & (px < x1) & (py >= y0) & (py < y1), p, patch)
+    if num_patches and g0 < h:
+        t_g = t_ground[g0:]
+        gx, gy = cam_x + t_g * dx, cam_y + t_g * dy
+        patch_g = jnp.full(gx.shape, -1, jnp.int32)
+        for p in range(num_patches):
+            x0, y0, x1, y1 = (scene.patches[p, i] for i in range(4))
+            patch_g = jnp.where((gx >= x0) & (gx < x1) & (gy >= y0) & (gy < y1), p, patch_g)
+        patch = jnp.concatenate([patch[:g0], patch_g], 0)
+    # Many patches (the city's 48): materialise the index once and look values up in a table; the
+    # select chains below would otherwise re-run the P tests and P selects in every output's loop.
+    gather = num_patches > _GATHER_PATCHES
+    if gather:
+        patch = jax.lax.optimization_barrier(patch)
 
-    def by_patch(base, values):  # the patch's value per pixel, ``base`` on bare ground (no gather)
+    def by_patch(base, values):  # the patch's value per pixel, ``base`` on bare ground
+        if gather:
+            table = jnp.concatenate([jnp.asarray(base, values.dtype)[None], values])
+            return table.at[patch + 1].get(mode="promise_in_bounds")
         out = base
         for p in range(num_patches):
             out = jnp.where(patch == p, values[p], out)
@@ -364,9 +405,12 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
 
     if k_hits:
         # A wall hit is exactly the entry distance; otherwise it is a circle's dome or a box's top.
-        dome_light = jnp.maximum((t * (dx * lx + dy * ly + s * lz) + attr(cand["dome_c"])) * attr(cand["inv_r"]), 0.0)
-        light_obj = jnp.where(t == attr(cand["t_in"]), attr(cand["wall_light"]),
-                              jnp.where(attr(cand["circ"]), dome_light, lz))
+        if "dome_c" in cand:
+            dome_light = jnp.maximum((t * (dx * lx + dy * ly + s * lz) + attr(cand["dome_c"])) * attr(cand["inv_r"]), 0.0)
+            other = jnp.where(attr(cand["circ"]), dome_light, lz) if "circ" in cand else dome_light
+        else:
+            other = lz  # box tops only
+        light_obj = jnp.where(t == attr(cand["t_in"]), attr(cand["wall_light"]), other)
         cls_obj = attr(cand["cls"])
     else:
         light_obj, cls_obj = 0.0, 0
