@@ -373,7 +373,10 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     # is computed on those rows from the constant t_ground (the same floats as px, py at ground pixels).
     num_patches = scene.patches.shape[0]
     g0 = int(np.argmax(y_img < 0)) if (y_img < 0).any() else h  # first row that can see the ground
+    gather = num_patches > _GATHER_PATCHES
     patch = jnp.full((h, w), -1, jnp.int32)
+    # Few patches: every row (no concatenation; rows above the horizon are never ground anyway).
+    g0 = g0 if gather else 0
     if num_patches and g0 < h:
         t_g = t_ground[g0:]
         gx, gy = cam_x + t_g * dx, cam_y + t_g * dy
@@ -381,10 +384,9 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
         for p in range(num_patches):
             x0, y0, x1, y1 = (scene.patches[p, i] for i in range(4))
             patch_g = jnp.where((gx >= x0) & (gx < x1) & (gy >= y0) & (gy < y1), p, patch_g)
-        patch = jnp.concatenate([patch[:g0], patch_g], 0)
+        patch = jnp.concatenate([patch[:g0], patch_g], 0) if g0 else patch_g
     # Many patches (the city's 48): materialise the index once and look values up in a table; the
     # select chains below would otherwise re-run the P tests and P selects in every output's loop.
-    gather = num_patches > _GATHER_PATCHES
     if gather:
         patch = jax.lax.optimization_barrier(patch)
 
