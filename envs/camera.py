@@ -306,8 +306,9 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
             c = _column_data(scene, cam, dx, dy, ids_k, cfg, weights)
             # The camera data ride along, so that per-pixel code reads them from a buffer instead of
             # re-evaluating cos/sin of the pose for every pixel.
-            return None, dict(c, dx=dx, dy=dy, cam_x=jnp.broadcast_to(cam[0], dx.shape),
-                              cam_y=jnp.broadcast_to(cam[1], dx.shape))
+            # (Stacked: each scan output is written by a loop of its own, one per step.)
+            return None, dict(c, ray=jnp.stack([dx, dy, jnp.broadcast_to(cam[0], dx.shape),
+                                                jnp.broadcast_to(cam[1], dx.shape)]))
 
         _, cand = jax.lax.scan(column, None, ids)  # [K, W] each
 
@@ -350,7 +351,7 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
         for k in range(k_hits):
             closer = t_k[k] < t
             t, surface = jnp.where(closer, t_k[k], t), jnp.where(closer, k, surface)
-        dx, dy, cam_x, cam_y = cand["dx"][0], cand["dy"][0], cand["cam_x"][0], cand["cam_y"][0]
+        dx, dy, cam_x, cam_y = cand["ray"][0]
     else:
         cam_x, cam_y = cam[0], cam[1]
 
