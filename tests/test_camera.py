@@ -246,3 +246,24 @@ def test_grayscale_is_the_papers_weighting_of_the_colour_image():
         ground = np.asarray(sem_rgb) == S.GRASS
         if ground.any():
             assert np.asarray(rgb)[ground][:, 1].mean() > np.asarray(rgb)[ground][:, 0].mean()
+
+
+def test_many_ground_patches_table_lookup_equals_select_chains(monkeypatch):
+    # Above camera._GATHER_PATCHES patches the renderer tests them on the rows below the horizon only
+    # and looks class and colour up in a table; it must draw exactly what the select chains draw.
+    from envs import camera
+
+    rng = np.random.default_rng(3)
+    num = camera._GATHER_PATCHES + 6
+    lo = rng.uniform(-12, 8, (num, 2))
+    patches = np.concatenate([lo, lo + rng.uniform(0.3, 6, (num, 2))], 1).astype(np.float32)
+    scene = forest_scene().replace(
+        patches=jnp.asarray(patches), patch_class=jnp.asarray(rng.integers(1, 6, num), jnp.int32),
+        patch_color=jnp.asarray(rng.uniform(0, 1, (num, 3)), jnp.float32))
+    poses = jnp.asarray(POSES)
+    table = jax.jit(jax.vmap(lambda p: render(scene, p, FOREST_CAMERA)))(poses)
+    monkeypatch.setattr(camera, "_GATHER_PATCHES", num)  # select chains on every row
+    chains = jax.jit(jax.vmap(lambda p: render(scene, p, FOREST_CAMERA)))(poses)
+    assert len(np.unique(np.asarray(table[1]))) > 4  # several paint classes are in view
+    for a, b in zip(table, chains):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
