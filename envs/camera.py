@@ -159,13 +159,14 @@ def _circle_hits(cx, cy, r, cam, dx, dy):
     return t_in, t_out, tc, half, (r > 0) & (chord2 > 0) & (t_out >= 0)
 
 
-def _box_hits(bx, by, ex, ey, yaw, cam, dx, dy):
+def _box_hits(bx, by, ex, ey, yaw, cam, dx, dy, cos_sin=None):
     """Horizontal ray against oriented rectangles (slab test in each box frame); arrays broadcast.
+    ``cos_sin``: (cos(yaw), sin(yaw)) when the caller has them already.
 
     Returns entry and exit distances (entry = exit from inside), the entry face's unit normal in the
     world (pointing back at the camera) and a hit flag.
     """
-    cos, sin = jnp.cos(yaw), jnp.sin(yaw)
+    cos, sin = (jnp.cos(yaw), jnp.sin(yaw)) if cos_sin is None else cos_sin
     qx, qy = cam[0] - bx, cam[1] - by
     px, py = cos * qx + sin * qy, cos * qy - sin * qx
     lx, ly = cos * dx + sin * dy, cos * dy - sin * dx
@@ -241,7 +242,10 @@ def _column_data(scene: Scene, cam, dx, dy, ids, cfg: CameraConfig, weights: np.
         # dome Lambert = (t * (dx lx + dy ly + s lz) + dome_c) / r, t the horizontal hit distance
         out.update(tc=tc, inv_r=inv_r, dome_c=((cam[0] - x) * lx + (cam[1] - y) * ly + (cam[2] - hgt) * lz) * inv_r)
     if nb:
-        bt_in, bt_out, (bnx, bny), bhit = _box_hits(x, y, a, bb, yaw, cam, dx, dy)
+        # cos / sin of the box yaws over the N primitives, then gathered: the same floats as taking
+        # them per column, without K x W trigonometric calls in every field's loop.
+        cos_sin = tuple(jnp.take(f(table[4]), ids, mode="clip") for f in (jnp.cos, jnp.sin))
+        bt_in, bt_out, (bnx, bny), bhit = _box_hits(x, y, a, bb, yaw, cam, dx, dy, cos_sin)
     if nc and nb:
         circ = ids < nc
         out.update(circ=circ, valid=jnp.where(circ, chit, bhit), t_in=jnp.where(circ, ct_in, bt_in),
