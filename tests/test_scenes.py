@@ -197,3 +197,29 @@ def test_saved_mjcf_assets_open_in_mujoco(name):
     scene = jax.eval_shape(lambda k: env.layout(env.sample_task(k)), jax.random.key(0))
     ceiling = int(name == "indoor")
     assert model.ngeom == 1 + scene.circles.shape[0] + scene.boxes.shape[0] + ceiling + 1  # ground ... chassis
+
+
+def test_windowed_projection_follows_a_car_cutting_a_corner():
+    """A route of long segments (the halls' 25 m sides): a car turning early, off the centreline, keeps
+    advancing along the route; the window only keeps the tracker from jumping ahead."""
+    from envs.scenes.common import project_on_path
+
+    route = jnp.asarray([[0.0, 10.0], [0.0, 0.0], [25.0, 0.0]])  # 10 m south, then 25 m east
+    # Down the first side 1 m right of the centreline, a quarter circle of radius 2 m cutting the
+    # corner, then east 1 m left of the centreline: 0.125 m per control step.
+    arc = np.linspace(0.0, np.pi / 2, 26)[1:]
+    cars = np.concatenate([np.stack([np.full(57, -1.0), np.linspace(10.0, 3.0, 57)], -1),
+                           np.stack([1.0 - 2.0 * np.cos(arc), 3.0 - 2.0 * np.sin(arc)], -1),
+                           np.stack([np.linspace(1.0, 20.0, 153), np.full(153, 1.0)], -1)])
+    s_prev, track = 0.0, []
+    for xy in cars:
+        s, _ = project_on_path(route, jnp.asarray(xy, jnp.float32), s_prev - 1.0, s_prev + 2.0)
+        s_prev = max(float(s), s_prev)
+        track.append(s_prev)
+    assert track[-1] == pytest.approx(10.0 + 20.0, abs=1e-4)  # at x = 20 on the second side
+    assert np.all(np.diff(track) <= 2.0)  # never jumps beyond the window
+    # Without a window: the nearest point of the whole route; a window picks the nearest point inside it.
+    s, d = project_on_path(route, jnp.asarray([5.0, 0.5]))
+    assert float(s) == pytest.approx(15.0) and float(d) == pytest.approx(0.5)
+    s, d = project_on_path(route, jnp.asarray([5.0, 0.5]), 0.0, 12.0)
+    assert float(s) == pytest.approx(12.0) and float(d) == pytest.approx(np.hypot(3.0, 0.5), rel=1e-5)

@@ -197,13 +197,19 @@ def project_on_path(path: jax.Array, xy: jax.Array, s_min=-jnp.inf, s_max=jnp.in
     a, b = path[:-1], path[1:]
     ab = b - a
     seg_len2 = jnp.maximum(jnp.sum(ab**2, -1), 1e-12)
-    t = jnp.clip(jnp.sum((xy - a) * ab, -1) / seg_len2, 0.0, 1.0)
+    seg_len = jnp.sqrt(seg_len2)
+    s0 = polyline_lengths(path)
+    # Each segment's part inside the window, as its parameter range: the nearest point is searched
+    # there, not on the whole segment (a long segment whose nearest point lies beyond the window may
+    # still hold the nearest in-window point: a car cutting a corner of a route of 25 m segments).
+    t_lo = jnp.clip((s_min - s0[:-1]) / seg_len, 0.0, 1.0)
+    t_hi = jnp.clip((s_max - s0[:-1]) / seg_len, 0.0, 1.0)
+    t = jnp.clip(jnp.sum((xy - a) * ab, -1) / seg_len2, t_lo, t_hi)
     closest = a + t[:, None] * ab
     dist = jnp.linalg.norm(xy - closest, axis=-1)
-    s0 = polyline_lengths(path)
-    s = s0[:-1] + t * jnp.sqrt(seg_len2)
+    s = s0[:-1] + t * seg_len
     s_clamped = jnp.clip(s, s_min, s_max)
-    # Points outside the window are penalised by how far outside they lie (never all excluded).
+    # Segments wholly outside the window are penalised by how far outside they lie (never all excluded).
     score = dist + 1e3 * jnp.abs(s - s_clamped)
     i = jnp.argmin(score)
     return s[i], dist[i]
