@@ -278,7 +278,8 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
 
     ``pose`` is the car's (x, y, yaw) (yaw 0 faces +x, counter-clockwise); ``c`` is 1 for grayscale
     configs else 3.  jit with ``cfg`` closed over or static; vmap over poses (and scenes) for robots.
-    Per pixel everything is elementwise over [H, W] (no gathers, no loop over all primitives).
+    Per pixel everything is elementwise over [H, W] (no loop over all primitives; the only gathers
+    are the ground paint's class and colour look-ups when a scene has many patches).
     """
     h, w = cfg.height, cfg.width
     x_img, y_img = _image_coords(cfg)
