@@ -363,10 +363,11 @@ def train_segmenter(cfg: SegmenterConfig, images, semantic, key: jax.Array, step
     optimizer = optax.adam(schedule, eps=train_cfg.adam_eps)
     images = jnp.asarray(images)
     targets = class_targets(cfg, semantic)
-    calibration = variables[CALIBRATION]  # rides along unused: the loss reads the raw logits
+    # The loss reads the raw logits, so the calibration it is applied with is only a placeholder.
+    unused_calibration = {"log_prior": jnp.zeros((cfg.num_classes,), jnp.float32)}
 
     def loss_fn(weights, x, y):
-        logits = segmenter.network.apply({"params": weights, CALIBRATION: calibration}, x, False)
+        logits = segmenter.network.apply({"params": weights, CALIBRATION: unused_calibration}, x, False)
         return balanced_cross_entropy(logits, y)
 
     def step(carry, _, frames, frame_targets):

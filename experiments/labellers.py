@@ -6,9 +6,9 @@ Frames.  For each scene, robots drive the MJX env with uniformly random actions 
 ``--train-robots x --train-steps-per-robot`` steps on *training* tasks stand for the collected dataset
 (25,600 steps by default), and ``--train-frames`` of them (256 = 1.0 %; the paper's labelled fraction
 was 0.2 %) are drawn at random to be the hand-labelled frames the segmenter trains on (class-balanced
-loss, then the training maps' class prior stored for calibrated predictions: ``--prior-correction``).  Only the poses
-are kept while driving; the drawn frames are rendered afterwards with their true class maps (the
-camera is exact, so this is the frame the robot saw).  Evaluation frames come from *held-out episodes*
+loss, then the training maps' class prior stored for calibrated predictions: ``--prior-correction``).
+Only the poses are kept while driving; the drawn frames are rendered afterwards with their true class
+maps (the camera is exact, so this is the frame the robot saw).  Evaluation frames come from *held-out episodes*
 on the 'eval' split: disjoint layout seeds (and, in the halls, the other driving direction).
 
 Outputs (``--out``/``<scene>/``): the labeller (``config.json`` + orbax ``params/``, reloadable with
