@@ -8,8 +8,17 @@ Per scene, JSON lines (``experiments.bench.emit``):
 * ``envs.<scene>.render_frames_per_s``: ``envs.camera.render`` alone, ``--render-batch`` views at once;
 * ``envs.<scene>.mjx_ray_frames_per_s``: the same views by ``mjx.ray`` per pixel (``--ray-batch`` views,
   the full scene's MJCF), and ``envs.<scene>.render_speedup_vs_mjx_ray``: the ratio of the two at the same
-  batch (``--ray-batch``), i.e. per pixel;
+  batch (``--ray-batch``, by default the render batch), i.e. per pixel;
 * ``envs.<scene>.compile_s``: wall time spent compiling the scene's functions.
+
+Devices.  Every batch (robots, views) is split over the local devices with ``jax.sharding``
+(``capsjax.sharding``), the way collection runs a fleet.  On a CPU the benchmark first splits the host
+into ``--host-devices`` XLA devices (default: one per core, ``--xla_force_host_platform_device_count``,
+set before JAX starts): XLA:CPU runs each of the renderer's fused loops on one thread, while ``mjx.ray``'s
+large ops already spread over the cores, so one device per core is what lets *both* sides use the whole
+machine -- the comparison is then machine against machine, not one core against two.  ``--host-devices 1``
+gives the one-device figures of earlier READMEs.  A batch that does not divide evenly runs on the
+largest device count that divides it (batch 1: one device); the lines record ``sharded_over``.
 
 Compilation dominates the run time (MJX's step takes most of a minute to compile on a 2-core CPU): the
 scene's functions are compiled in parallel threads first, and ``--batches`` / ``--scenes`` shrink the run.
@@ -19,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import os
 import time
 
 import jax
@@ -26,8 +36,30 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs
+from capsjax import sharding
 from envs.camera import mjx_ray_depth, render
 from experiments.bench import emit
+
+_HOST_DEVICES_FLAG = "--xla_force_host_platform_device_count"
+
+
+def use_host_devices(count: int) -> None:
+    """Split a CPU host into ``count`` XLA devices (must run before JAX initialises its backend)."""
+    import jax._src.xla_bridge as xla_bridge  # noqa: PLC0415 (only to tell whether JAX has started)
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    if _HOST_DEVICES_FLAG in flags:
+        return  # the caller chose already
+    if xla_bridge.backends_are_initialized():
+        raise RuntimeError(f"--host-devices {count}: JAX has started already; set XLA_FLAGS={_HOST_DEVICES_FLAG}="
+                           f"{count} in the environment instead")
+    os.environ["XLA_FLAGS"] = f"{flags} {_HOST_DEVICES_FLAG}={count}".strip()
+
+
+def _mesh_for(batch: int):
+    """The largest mesh of local devices that splits ``batch`` evenly, and its device count."""
+    count = max(d for d in range(1, jax.local_device_count() + 1) if batch % d == 0)
+    return sharding.make_mesh(count), count
 
 
 def _median_time(fn, repeats: int, min_seconds: float = 0.3) -> float:
@@ -59,16 +91,25 @@ def bench_scene(name: str, batches: list[int], steps: int, repeats: int, render_
         return jax.lax.scan(body, state, actions)[0]
 
     # Inputs per batch size: tasks from distinct seeds (distinct layouts), random plan-box actions.
-    inputs, compiled = {}, {}
+    inputs, compiled, spread = {}, {}, {}
     for b in batches:
         keys = jax.random.split(jax.random.key(b), b)
         tasks = jax.vmap(lambda k: env.sample_task(k, "train"))(keys)
         state = jax.jit(jax.vmap(env.reset))(keys, tasks)
         u = np.random.default_rng(b).uniform(size=(steps, b, spec.action_dim)).astype(np.float32)
-        inputs[b] = (state, jnp.asarray(low + u * (high - low)))
+        mesh, spread[b] = _mesh_for(b)
+        actions = jax.device_put(jnp.asarray(low + u * (high - low)),
+                                 jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(None, sharding.DATA_AXIS)))
+        inputs[b] = (sharding.shard_robots(state, mesh), actions)
 
-    scene = jax.tree.map(lambda x: x[0], inputs[batches[0]][0].physics.scene)
-    poses = jax.vmap(lambda k: _free_pose(env, inputs[batches[0]][0], k))(jax.random.split(jax.random.key(7), render_batch))
+    # The first robot's layout and start, on one device (the views are sharded below).
+    first = jax.tree.map(jnp.asarray, jax.device_get(inputs[batches[0]][0]))
+    scene = jax.tree.map(lambda x: x[0], first.physics.scene)
+    all_poses = jax.vmap(lambda k: _free_pose(env, first, k))(jax.random.split(jax.random.key(7), render_batch))
+    view_batches = sorted({render_batch, ray_batch})
+    for b in view_batches:
+        spread.setdefault(b, _mesh_for(b)[1])
+    poses = {b: sharding.shard_robots(all_poses[:b], _mesh_for(b)[0]) for b in view_batches}
     cam = env.config.camera
     render_fn = jax.jit(jax.vmap(lambda p: render(scene, p, cam)))
 
@@ -83,9 +124,9 @@ def bench_scene(name: str, batches: list[int], steps: int, repeats: int, render_
     ray_fn = jax.jit(jax.vmap(lambda p: mjx_ray_depth(model, data, p, cam)))
 
     jobs = {("steps", b): (jax.jit(rollout), inputs[b]) for b in batches}
-    jobs[("render", render_batch)] = (render_fn, (poses,))
-    jobs[("render", ray_batch)] = (render_fn, (poses[:ray_batch],))
-    jobs[("ray", ray_batch)] = (ray_fn, (poses[:ray_batch],))
+    jobs[("render", render_batch)] = (render_fn, (poses[render_batch],))
+    jobs[("render", ray_batch)] = (render_fn, (poses[ray_batch],))
+    jobs[("ray", ray_batch)] = (ray_fn, (poses[ray_batch],))
     start = time.perf_counter()
     with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:
         futures = {k: pool.submit(lambda f=f, a=a: f.lower(*a).compile()) for k, (f, a) in jobs.items()}
@@ -95,14 +136,17 @@ def bench_scene(name: str, batches: list[int], steps: int, repeats: int, render_
     for b in batches:
         fn, args = compiled[("steps", b)], inputs[b]
         seconds = _median_time(lambda: fn(*args), repeats)
-        emit(f"envs.{name}.steps_per_s_{b}", b * steps / seconds, "steps/s", batch=b, steps=steps, **context)
-    frames = _median_time(lambda: compiled[("render", render_batch)](poses), repeats)
-    emit(f"envs.{name}.render_frames_per_s", render_batch / frames, "frames/s", batch=render_batch, **context)
-    small = _median_time(lambda: compiled[("render", ray_batch)](poses[:ray_batch]), repeats)
-    ray = _median_time(lambda: compiled[("ray", ray_batch)](poses[:ray_batch]), max(1, repeats // 2))
+        emit(f"envs.{name}.steps_per_s_{b}", b * steps / seconds, "steps/s", batch=b, steps=steps,
+             sharded_over=spread[b], **context)
+    frames = _median_time(lambda: compiled[("render", render_batch)](poses[render_batch]), repeats)
+    emit(f"envs.{name}.render_frames_per_s", render_batch / frames, "frames/s", batch=render_batch,
+         sharded_over=spread[render_batch], **context)
+    same = _median_time(lambda: compiled[("render", ray_batch)](poses[ray_batch]), repeats)
+    ray = _median_time(lambda: compiled[("ray", ray_batch)](poses[ray_batch]), max(1, repeats // 2))
     emit(f"envs.{name}.mjx_ray_frames_per_s", ray_batch / ray, "frames/s", batch=ray_batch, ngeom=mj_model.ngeom,
+         sharded_over=spread[ray_batch], **context)
+    emit(f"envs.{name}.render_speedup_vs_mjx_ray", ray / same, "x", batch=ray_batch, sharded_over=spread[ray_batch],
          **context)
-    emit(f"envs.{name}.render_speedup_vs_mjx_ray", ray / small, "x", batch=ray_batch, **context)
 
 
 def _free_pose(env, state, key):
@@ -118,11 +162,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=8, help="control steps per timed rollout")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--render-batch", type=int, default=256)
-    parser.add_argument("--ray-batch", type=int, default=4, help="views for the mjx.ray comparison")
+    parser.add_argument("--ray-batch", type=int, default=None,
+                        help="views for the mjx.ray comparison (default: --render-batch)")
+    parser.add_argument("--host-devices", type=int, default=os.cpu_count() or 1,
+                        help="XLA devices a CPU host is split into (default: one per core; see the module docstring)")
     args = parser.parse_args(argv)
+    if args.host_devices < 1:
+        parser.error(f"--host-devices must be >= 1, got {args.host_devices}")
+    use_host_devices(args.host_devices)
+    ray_batch = args.render_batch if args.ray_batch is None else args.ray_batch
     batches = [int(b) for b in args.batches.split(",") if b]
     for name in args.scenes.split(","):
-        bench_scene(name, batches, args.steps, args.repeats, args.render_batch, args.ray_batch)
+        bench_scene(name, batches, args.steps, args.repeats, args.render_batch, ray_batch)
 
 
 if __name__ == "__main__":
