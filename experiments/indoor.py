@@ -1,5 +1,6 @@
 """``python -m experiments.indoor``: the paper's RC-car experiment in our indoor halls (caps-algorithm.md 9.3, 10).
 
+The car is RC-sized like the paper's (``envs.scenes.indoor.RC_CAR``: 0.5 x 0.3 m in 3 m hallways).
 Data: uniform random steering at the fixed 0.5 m/s (the paper drove with collision avoidance) around the
 loop counter-clockwise, in training door layouts.  Cues: collision, heading, and door_frac labelled by the
 learned segmenter (trained on the 0.2 % of frames stored with their true semantic map; Q3).  Evaluation:

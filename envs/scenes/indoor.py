@@ -18,7 +18,8 @@ seconds (at the fixed speed) before the car reaches it, and stays until the next
 Signals add ``door_frac`` (the fraction of the image that is door, from the true class map).  Metrics:
 ``route_fraction`` (fraction of the loop traversed), ``crash``, ``turns`` (intersections passed with the
 heading within 45 degrees of the command), ``turns_total`` (intersections passed), ``door_fraction``
-(mean door_frac).  Steering only (A = 1, degrees, env box +-45, planning +-30) at a fixed 0.5 m/s.
+(mean door_frac).  Steering only (A = 1, degrees, env box +-45, planning +-30) at a fixed 0.5 m/s, with
+the paper's RC-car scale (``RC_CAR``, 0.5 m long) in 3 m hallways.
 """
 from __future__ import annotations
 
@@ -38,15 +39,24 @@ from envs.scenes import common
 _NUM_JUNCTIONS = 5
 
 
+# The paper's halls car is a real 1/10-scale RC car (caps-algorithm.md 9.3), not the 2 m forest/city car:
+# 0.5 x 0.3 m, 0.3 m wheelbase (turning radius 0.52 m at the planner's 30 degree steer), 3 kg; the
+# cornering stiffness keeps the 10 kg car's stiffness per unit of tyre load.  Its camera sits on a mast
+# 0.2 m ahead of the centre at the standard 0.375 m (so the door labeller sees the same views).
+RC_CAR = CarConfig(half_length=0.25, half_width=0.15, half_height=0.1, mass=3.0, front_axle=0.15,
+                   rear_axle=0.15, cornering_stiffness=150.0, near_circles=0, near_boxes=4, max_speed=1.0)
+RC_CAMERA = dataclasses.replace(HALL_CAMERA, mount_forward=0.2)
+
+
 @dataclasses.dataclass(frozen=True)
 class IndoorConfig(common.SceneConfig):
-    camera: CameraConfig = HALL_CAMERA
-    car: CarConfig = CarConfig(near_circles=0, near_boxes=4, max_speed=1.0)
+    camera: CameraConfig = RC_CAMERA
+    car: CarConfig = RC_CAR
     fixed_speed: float | None = 0.5
     speed_limit: float = 1.0
     half_x: float = 12.5  # half sizes of the loop's centreline rectangle (75 m around by default)
     half_y: float = 6.25
-    corridor_width: float = 4.0  # wide enough for the 2 m car to turn at a corner
+    corridor_width: float = 3.0  # a university hallway: six RC-car lengths
     wall_thickness: float = 0.2
     wall_height: float = 2.7
     ceiling_height: float = 2.7
