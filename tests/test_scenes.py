@@ -18,12 +18,12 @@ from envs.car import CarState
 B = 2  # robots: 0 is put in front of an obstacle, 1 drives from its start
 
 
-def _front_of_first_box(state: base.EnvState, speed: float) -> CarState:
+def _front_of_first_box(state: base.EnvState, speed: float, half_length: float) -> CarState:
     """Robot 0's car 0.3 m before the -x face of its scene's first box, driving into it."""
     box = state.physics.scene.boxes[0]
     yaw = box[4]
     d = jnp.stack([jnp.cos(yaw), jnp.sin(yaw)])
-    xy = box[:2] - (box[2] + 1.0 + 0.3) * d  # the chassis is 1 m long ahead of its centre
+    xy = box[:2] - (box[2] + half_length + 0.3) * d  # the chassis reaches half_length ahead of its centre
     return CarState(qpos=jnp.concatenate([xy, yaw[None]]), qvel=jnp.concatenate([speed * d, jnp.zeros(1)]))
 
 
@@ -48,7 +48,7 @@ def scene_run(request):
     spec = env.spec
     fixed = env.config.fixed_speed
     speed = float(fixed) if fixed is not None else float(spec.plan_high[1])
-    car0 = _front_of_first_box(jax.tree.map(lambda x: x[0], state0), speed)
+    car0 = _front_of_first_box(jax.tree.map(lambda x: x[0], state0), speed, env.config.car.half_length)
     cars = jax.tree.map(lambda a, b: a.at[0].set(b), state0.physics.car, car0)
     state = state0.replace(physics=state0.physics.replace(car=cars))
 
@@ -223,3 +223,15 @@ def test_windowed_projection_follows_a_car_cutting_a_corner():
     assert float(s) == pytest.approx(15.0) and float(d) == pytest.approx(0.5)
     s, d = project_on_path(route, jnp.asarray([5.0, 0.5]), 0.0, 12.0)
     assert float(s) == pytest.approx(12.0) and float(d) == pytest.approx(np.hypot(3.0, 0.5), rel=1e-5)
+
+
+def test_halls_car_is_rc_sized_and_can_turn_inside_a_hallway():
+    """The halls use the paper's RC-car scale: at the planner's steering limit the car's turning circle,
+    swept by its whole footprint, fits in half a hallway (the 2 m car's did not fit in 4 m corridors)."""
+    cfg = envs.make("indoor").config
+    car = cfg.car
+    wheelbase = car.front_axle + car.rear_axle
+    steer = math.radians(float(envs.make("indoor").spec.plan_high[0]))
+    radius = wheelbase / math.tan(steer)
+    assert 2 * car.half_length <= 0.6
+    assert radius + car.radius <= cfg.corridor_width / 2
