@@ -56,10 +56,3 @@ def test_env_benchmark_prints_every_figure_split_over_two_host_devices():
     assert all(line["num_devices"] == 2 and line["value"] > 0 for line in lines)
     assert figures["envs.forest.steps_per_s_2"]["sharded_over"] == 2
     assert figures["envs.forest.render_speedup_vs_mjx_ray"]["batch"] == 4
-
-
-def test_paired_times_take_the_median_of_per_pair_ratios(monkeypatch):
-    samples = iter([2.0, 1.0, 4.0, 1.0, 6.0, 2.0])  # (slow, fast) pairs: ratios 2, 4, 3
-    monkeypatch.setattr(env_bench, "_sample_time", lambda fn, min_seconds=0.3: next(samples))
-    slow, fast, ratio = env_bench._paired_times(lambda: jax.numpy.zeros(()), lambda: jax.numpy.zeros(()), 3)
-    assert (slow, fast, ratio) == (4.0, 1.0, 3.0)  # not 4 / 1: a drift within the run cancels in each pair

@@ -8,8 +8,7 @@ Per scene, JSON lines (``experiments.bench.emit``):
 * ``envs.<scene>.render_frames_per_s``: ``envs.camera.render`` alone, ``--render-batch`` views at once;
 * ``envs.<scene>.mjx_ray_frames_per_s``: the same views by ``mjx.ray`` per pixel (``--ray-batch`` views,
   the full scene's MJCF), and ``envs.<scene>.render_speedup_vs_mjx_ray``: the ratio of the two at the same
-  batch (``--ray-batch``, by default the render batch), i.e. per pixel: the median over ``--repeats`` pairs
-  of samples, each pair timing ``mjx.ray`` and the renderer back to back;
+  batch (``--ray-batch``, by default the render batch), i.e. per pixel;
 * ``envs.<scene>.compile_s``: wall time spent compiling the scene's functions.
 
 Devices.  Every batch (robots, views) is split over the local devices with ``jax.sharding``
@@ -63,32 +62,20 @@ def _mesh_for(batch: int):
     return sharding.make_mesh(count), count
 
 
-def _sample_time(fn, min_seconds: float = 0.3) -> float:
-    """Seconds per call of ``fn`` called back to back for at least ``min_seconds`` (a single
-    millisecond call is mostly timer and scheduler noise)."""
-    calls, start = 0, time.perf_counter()
-    while True:
-        jax.block_until_ready(fn())
-        calls += 1
-        if time.perf_counter() - start >= min_seconds:
-            return (time.perf_counter() - start) / calls
-
-
 def _median_time(fn, repeats: int, min_seconds: float = 0.3) -> float:
-    """Median over ``repeats`` samples (``_sample_time``) of the seconds per call."""
+    """Median over ``repeats`` samples of the seconds per call; each sample calls ``fn`` back to back
+    for at least ``min_seconds`` (a single millisecond call is mostly timer and scheduler noise)."""
     jax.block_until_ready(fn())  # warm: first-call allocations are not part of the figure
-    return float(np.median([_sample_time(fn, min_seconds) for _ in range(repeats)]))
-
-
-def _paired_times(slow, fast, repeats: int) -> tuple[float, float, float]:
-    """Median seconds per call of ``slow`` and ``fast`` and the median of their per-pair ratios, from
-    ``repeats`` pairs of samples taken back to back: a drift in the machine's speed (another job, clock
-    changes) then moves both halves of a pair alike instead of skewing the ratio."""
-    jax.block_until_ready(slow())
-    jax.block_until_ready(fast())
-    pairs = [(_sample_time(slow), _sample_time(fast)) for _ in range(repeats)]
-    slow_s, fast_s = np.median([p[0] for p in pairs]), np.median([p[1] for p in pairs])
-    return float(slow_s), float(fast_s), float(np.median([a / b for a, b in pairs]))
+    times = []
+    for _ in range(repeats):
+        calls, start = 0, time.perf_counter()
+        while True:
+            jax.block_until_ready(fn())
+            calls += 1
+            if time.perf_counter() - start >= min_seconds:
+                break
+        times.append((time.perf_counter() - start) / calls)
+    return float(np.median(times))
 
 
 def bench_scene(name: str, batches: list[int], steps: int, repeats: int, render_batch: int, ray_batch: int) -> None:
@@ -154,12 +141,12 @@ def bench_scene(name: str, batches: list[int], steps: int, repeats: int, render_
     frames = _median_time(lambda: compiled[("render", render_batch)](poses[render_batch]), repeats)
     emit(f"envs.{name}.render_frames_per_s", render_batch / frames, "frames/s", batch=render_batch,
          sharded_over=spread[render_batch], **context)
-    ray, _, speedup = _paired_times(lambda: compiled[("ray", ray_batch)](poses[ray_batch]),
-                                    lambda: compiled[("render", ray_batch)](poses[ray_batch]), repeats)
+    same = _median_time(lambda: compiled[("render", ray_batch)](poses[ray_batch]), repeats)
+    ray = _median_time(lambda: compiled[("ray", ray_batch)](poses[ray_batch]), max(1, repeats // 2))
     emit(f"envs.{name}.mjx_ray_frames_per_s", ray_batch / ray, "frames/s", batch=ray_batch, ngeom=mj_model.ngeom,
          sharded_over=spread[ray_batch], **context)
-    emit(f"envs.{name}.render_speedup_vs_mjx_ray", speedup, "x", batch=ray_batch, sharded_over=spread[ray_batch],
-         pairs=repeats, **context)
+    emit(f"envs.{name}.render_speedup_vs_mjx_ray", ray / same, "x", batch=ray_batch, sharded_over=spread[ray_batch],
+         **context)
 
 
 def _free_pose(env, state, key):
