@@ -56,3 +56,9 @@ def test_env_benchmark_prints_every_figure_split_over_two_host_devices():
     assert all(line["num_devices"] == 2 and line["value"] > 0 for line in lines)
     assert figures["envs.forest.steps_per_s_2"]["sharded_over"] == 2
     assert figures["envs.forest.render_speedup_vs_mjx_ray"]["batch"] == 4
+
+
+def test_ray_batch_larger_than_the_render_batch_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        env_bench.main(["--ray-batch", "8", "--render-batch", "4", "--host-devices", "1"])
+    assert "--ray-batch must be in [1, --render-batch = 4], got 8" in capsys.readouterr().err

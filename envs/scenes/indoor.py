@@ -42,7 +42,7 @@ _NUM_JUNCTIONS = 5
 # The paper's halls car is a real 1/10-scale RC car (caps-algorithm.md 9.3), not the 2 m forest/city car:
 # 0.5 x 0.3 m, 0.3 m wheelbase (turning radius 0.52 m at the planner's 30 degree steer), 3 kg; the
 # cornering stiffness keeps the 10 kg car's stiffness per unit of tyre load.  Its camera sits on a mast
-# 0.2 m ahead of the centre at the standard 0.375 m (so the door labeller sees the same views).
+# 0.2 m ahead of the centre at the 0.375 m height of the other scenes' cameras.
 RC_CAR = CarConfig(half_length=0.25, half_width=0.15, half_height=0.1, mass=3.0, front_axle=0.15,
                    rear_axle=0.15, cornering_stiffness=150.0, near_circles=0, near_boxes=4, max_speed=1.0)
 RC_CAMERA = dataclasses.replace(HALL_CAMERA, mount_forward=0.2)

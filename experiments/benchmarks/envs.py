@@ -107,9 +107,10 @@ def bench_scene(name: str, batches: list[int], steps: int, repeats: int, render_
     scene = jax.tree.map(lambda x: x[0], first.physics.scene)
     all_poses = jax.vmap(lambda k: _free_pose(env, first, k))(jax.random.split(jax.random.key(7), render_batch))
     view_batches = sorted({render_batch, ray_batch})
+    poses = {}
     for b in view_batches:
-        spread.setdefault(b, _mesh_for(b)[1])
-    poses = {b: sharding.shard_robots(all_poses[:b], _mesh_for(b)[0]) for b in view_batches}
+        mesh, spread[b] = _mesh_for(b)
+        poses[b] = sharding.shard_robots(all_poses[:b], mesh)
     cam = env.config.camera
     render_fn = jax.jit(jax.vmap(lambda p: render(scene, p, cam)))
 
@@ -169,8 +170,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.host_devices < 1:
         parser.error(f"--host-devices must be >= 1, got {args.host_devices}")
-    use_host_devices(args.host_devices)
     ray_batch = args.render_batch if args.ray_batch is None else args.ray_batch
+    if not 1 <= ray_batch <= args.render_batch:
+        parser.error(f"--ray-batch must be in [1, --render-batch = {args.render_batch}], got {ray_batch}")
+    use_host_devices(args.host_devices)
     batches = [int(b) for b in args.batches.split(",") if b]
     for name in args.scenes.split(","):
         bench_scene(name, batches, args.steps, args.repeats, args.render_batch, ray_batch)
