@@ -61,6 +61,32 @@ def training_config(model, train_config, extra: dict | None = None) -> dict:
     return config
 
 
+def training_defaults(model, train_config, extra: dict | None = None) -> dict:
+    """Each config section's field defaults, in ``training_config``'s layout (dataclasses only).
+
+    A checkpoint written before a config field existed lacks it; on restore the field counts as its
+    default (``Checkpointer(defaults=...)``), so adding a field with a default (one that keeps the old
+    behaviour) leaves older checkpoints restorable, and a non-default value is still refused."""
+    sections = {"ModelConfig": model.config, "TrainConfig": train_config, **(extra or {})}
+    out = {}
+    for name, value in sections.items():
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            out[name] = {f.name: to_json(f.default) for f in dataclasses.fields(value)
+                         if f.default is not dataclasses.MISSING}
+    return out
+
+
+def with_defaults(saved: dict, defaults: dict | None) -> dict:
+    """``saved`` with each section's absent fields set to their defaults (see ``training_defaults``)."""
+    if not defaults:
+        return saved
+    out = dict(saved)
+    for section, fields in defaults.items():
+        if isinstance(out.get(section), dict):
+            out[section] = {**fields, **out[section]}
+    return out
+
+
 def first_difference(saved, requested, path: str = ""):
     """``(path, saved, requested)`` of the first field that differs, or None."""
     if isinstance(saved, dict) and isinstance(requested, dict):
@@ -121,18 +147,20 @@ class Checkpointer:
 
     ``config`` (a JSON-able dict, e.g. ``training_config(model, cfg)``) is stored with every step and
     must equal the saved one on restore; pass ``config=None`` to skip that check (e.g. to inspect a
-    checkpoint of unknown origin).  Use as a context manager, or call ``close()``, so pending
+    checkpoint of unknown origin).  ``defaults`` (``training_defaults``) fill fields that a config saved
+    by an older version lacks.  Use as a context manager, or call ``close()``, so pending
     asynchronous saves finish.
     """
 
     def __init__(self, directory, *, save_every: int = 1, keep: int | None = 3, config: dict | None = None,
-                 async_save: bool = True):
+                 defaults: dict | None = None, async_save: bool = True):
         if not isinstance(save_every, int) or save_every <= 0:
             raise ValueError(f"Checkpointer.save_every must be a positive int, got {save_every!r}")
         if keep is not None and (not isinstance(keep, int) or keep <= 0):
             raise ValueError(f"Checkpointer.keep must be a positive int or None (keep all), got {keep!r}")
         self.directory = os.path.abspath(os.fspath(directory))
         self.config = to_json(config) if config is not None else None
+        self.defaults = defaults  # fields a saved config may lack (``training_defaults``)
         options = ocp.CheckpointManagerOptions(
             save_interval_steps=save_every, max_to_keep=keep, create=True, enable_async_checkpointing=async_save
         )
@@ -203,7 +231,7 @@ class Checkpointer:
     def _restore_step(self, abstract, step: int):
         path = self.step_path(step)
         if self.config is not None:
-            saved = self.saved_config(step)
+            saved = with_defaults(self.saved_config(step), self.defaults)
             diff = first_difference(saved, self.config)
             if diff:
                 field, was, want = diff

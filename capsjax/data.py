@@ -577,26 +577,42 @@ class WindowSampler:
     plan_high: jax.Array  # f32[A]
     horizon: int = struct.field(pytree_node=False)
     history: int = struct.field(pytree_node=False)
+    # Mirror augmentation (``make_sampler(mirror=True)``): per-quantity signs under a left-right mirror.
+    mirror: bool = struct.field(pytree_node=False, default=False)
+    vector_sign: jax.Array | None = None  # f32[D]
+    action_sign: jax.Array | None = None  # f32[A]
+    signal_sign: dict | None = None  # name -> f32 scalar
 
     @property
     def num_windows(self) -> int:
         return int(self.starts.shape[0])
 
-    def _history(self, t: jax.Array):
+    def _history(self, t: jax.Array, flip: jax.Array | None):
         idx = t[:, None] - (self.history - 1) + jnp.arange(self.history)  # [B, L], oldest first
         inside = idx >= self.episode_start[t][:, None]
         safe = jnp.clip(idx, 0, self.images.shape[0] - 1)
         images = jnp.where(inside[..., None, None, None], self.images[safe], jnp.zeros((), jnp.uint8))
         vector = jnp.where(inside[..., None], self.vector[safe], 0.0)
+        if flip is not None:
+            images = jnp.where(flip[:, None, None, None, None], images[..., ::-1, :], images)
+            vector = vector * jnp.where(flip[:, None, None], self.vector_sign, 1.0)
         from envs.base import (
             Observation,  # lazy: capsjax does not import envs at module load
         )
 
         return Observation(images=images, vector=vector)
 
-    def windows(self, t: jax.Array, key: jax.Array):
-        """The batch of windows starting at flat indices ``t`` i32[B] (``sample`` draws them)."""
+    def windows(self, t: jax.Array, key: jax.Array, flip: jax.Array | None = None):
+        """The batch of windows starting at flat indices ``t`` i32[B] (``sample`` draws them).
+
+        ``flip`` bool[B] (mirror samplers only): which windows to mirror left-right -- frames flipped
+        along their width, and every vector entry, executed action, signal and pose coordinate that
+        changes sign under the mirror y -> -y negated (``MIRROR_SIGNS``).  Actions past an episode's
+        end stay uniform draws from the plan box."""
         from capsjax.losses import Batch
+
+        if flip is not None and not self.mirror:
+            raise ValueError("flip needs a sampler made with make_sampler(mirror=True)")
 
         h = self.horizon
         end = self.episode_end[t]  # [B]
@@ -607,28 +623,50 @@ class WindowSampler:
         # a time-out's stays 0; the other cues are masked there.
         idx = jnp.minimum(future, end[:, None])
         signals = {name: v[idx] for name, v in self.signals.items()}
+        if flip is not None:
+            signals = {name: v * jnp.where(flip[:, None], self.signal_sign[name], 1.0) for name, v in signals.items()}
         act_idx = t[:, None] + k
         executed = act_idx < end[:, None]  # the terminal entry's action was never executed
         random = jax.random.uniform(key, act_idx.shape + self.plan_low.shape, minval=self.plan_low,
                                     maxval=self.plan_high)
-        actions = jnp.where(executed[..., None], self.action[jnp.minimum(act_idx, end[:, None])], random)
+        taken = self.action[jnp.minimum(act_idx, end[:, None])]
+        pose, final_xy = self.pose[t], self.pose[end][:, :2]
+        if flip is not None:
+            taken = taken * jnp.where(flip[:, None, None], self.action_sign, 1.0)
+            mirror_y = jnp.where(flip, -1.0, 1.0)[:, None]
+            pose = pose * jnp.concatenate([jnp.ones_like(mirror_y), mirror_y, mirror_y], axis=1)
+            final_xy = final_xy * jnp.concatenate([jnp.ones_like(mirror_y), mirror_y], axis=1)
+        actions = jnp.where(executed[..., None], taken, random)
         return Batch(
-            obs=self._history(t), actions=actions, signals=signals, valid=valid,
-            done=future == end[:, None], next_obs=self._history(t + 1),
-            context={"pose": self.pose[t], "final_xy": self.pose[end][:, :2]},
+            obs=self._history(t, flip), actions=actions, signals=signals, valid=valid,
+            done=future == end[:, None], next_obs=self._history(t + 1, flip),
+            context={"pose": pose, "final_xy": final_xy},
         )
 
     def sample(self, key: jax.Array, batch_size: int):
         """``capsjax.losses.Batch`` of ``batch_size`` windows, starts uniform over all valid starts.
         Pure: jit it with ``batch_size`` static (``jax.jit(WindowSampler.sample, static_argnums=2)``)."""
+        flip = None
+        if self.mirror:  # half of the windows mirrored (the extra split only here: other streams unchanged)
+            key, k_flip = jax.random.split(key)
+            flip = jax.random.bernoulli(k_flip, 0.5, (batch_size,))
         k_start, k_act = jax.random.split(key)
         t = self.starts[jax.random.randint(k_start, (batch_size,), 0, self.starts.shape[0])]
-        return self.windows(t, k_act)
+        return self.windows(t, k_act, flip)
+
+
+# How a named vector entry, action or signal changes when the world is mirrored left-right (y -> -y,
+# so yaw -> -yaw and a left turn becomes a right one): kept (+1) or negated (-1).  Right-lane cues
+# (lane_seen, lane_diff) are deliberately absent: the mirror of right-hand traffic is left-hand traffic,
+# so they have no mirrored label and a sampler asked to mirror them refuses.
+MIRROR_SIGNS = {"collision": 1.0, "speed": 1.0, "door_frac": 1.0, "x": 1.0, "heading": -1.0, "y": -1.0,
+                "steer_deg": -1.0}
 
 
 def make_sampler(ds: Dataset, *, horizon: int, episodes=None, label_sources: dict[str, str] | None = None,
                  plan_low=None, plan_high=None, signals: tuple[str, ...] | None = None,
-                 max_bytes: int = 8 << 30) -> WindowSampler:
+                 max_bytes: int = 8 << 30, mirror: bool = False,
+                 mirror_signs: dict[str, float] | None = None) -> WindowSampler:
     """Load ``episodes`` (default: all committed) into a ``WindowSampler`` on the default device.
 
     ``signals`` (default: the spec's) are the ground-truth cues; ``label_sources`` maps a cue to a label
@@ -636,6 +674,12 @@ def make_sampler(ds: Dataset, *, horizon: int, episodes=None, label_sources: dic
     ``plan_low/high`` (default: the spec's plan box) is where actions past an episode's end are drawn.
     Episodes with an unreadable chunk are skipped with a warning.  Refuses to load more than
     ``max_bytes`` (pass fewer episodes or raise the limit).
+
+    ``mirror``: each sampled window is mirrored left-right with probability 1/2 (see
+    ``WindowSampler.windows``), a data augmentation valid wherever the world's rules are symmetric
+    (driving among obstacles, heading commands; not right-hand traffic).  ``mirror_signs`` (default
+    ``MIRROR_SIGNS``) says how each vector key, action name and signal changes; a name it lacks is
+    refused, never guessed.
     """
     horizon = int(horizon)
     if horizon < 1:
@@ -710,10 +754,27 @@ def make_sampler(ds: Dataset, *, horizon: int, episodes=None, label_sources: dic
     high = np.asarray(spec.plan_high if plan_high is None else plan_high, np.float32)
     if low.shape != (spec.action_dim,) or high.shape != (spec.action_dim,):
         raise ValueError(f"plan_low/plan_high must have shape ({spec.action_dim},), got {low.shape} / {high.shape}")
+    mirror_fields = {}
+    if mirror:
+        signs = dict(MIRROR_SIGNS if mirror_signs is None else mirror_signs)
+        names = [("vector key", k) for k in spec.vector_keys] + [("action", a) for a in spec.action_names]
+        names += [("signal", k.split("/", 1)[1]) for k in loaded if k.startswith("signal/")]
+        for kind, name in names:
+            if name not in signs:
+                raise ValueError(f"mirror=True, but mirror_signs has no sign for {kind} {name!r} (how it changes "
+                                 f"under a left-right mirror: +1 kept, -1 negated); it knows {sorted(signs)}")
+            if signs[name] not in (1.0, -1.0):
+                raise ValueError(f"mirror_signs[{name!r}] must be +1 or -1, got {signs[name]!r}")
+        mirror_fields = dict(
+            mirror=True, vector_sign=jnp.asarray([signs[k] for k in spec.vector_keys], jnp.float32),
+            action_sign=jnp.asarray([signs[a] for a in spec.action_names], jnp.float32),
+            signal_sign={k.split("/", 1)[1]: jnp.float32(signs[k.split("/", 1)[1]])
+                         for k in loaded if k.startswith("signal/")})
     return WindowSampler(
         images=jnp.asarray(loaded["image"]), vector=jnp.asarray(loaded["vector"]),
         action=jnp.asarray(loaded["action"]), pose=jnp.asarray(loaded["pose"]),
         signals={k.split("/", 1)[1]: jnp.asarray(v) for k, v in loaded.items() if k.startswith("signal/")},
         episode_start=jnp.asarray(ep_start), episode_end=jnp.asarray(ep_end), starts=jnp.asarray(window_starts),
         plan_low=jnp.asarray(low), plan_high=jnp.asarray(high), horizon=horizon, history=spec.history,
+        **mirror_fields,
     )

@@ -45,6 +45,9 @@ class ModelConfig:
     history: int = 4
     horizon: int = 12  # the training horizon; rollouts may use any length up to it
     conv: tuple[tuple[int, int, int], ...] = PAPER_CONV
+    # Average-pool each frame by this factor before the CNN (1: none, the paper's).  A CPU-budget knob:
+    # 2 quarters the CNN's work on the halls' 96x128 frames (the CNN dominates a training step).
+    image_pool: int = 1
     obs_hidden: tuple[int, ...] = (256, 128)
     action_hidden: tuple[int, ...] = (16, 128)
     head_hidden: int = 16
@@ -66,9 +69,12 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.action_low must be < action_high, got {self.action_low}, {self.action_high}")
         if self.obs_hidden[-1] % 2:
             raise ValueError(f"ModelConfig.obs_hidden[-1] must be even (split into LSTM c and h), got {self.obs_hidden}")
-        for name in ("history", "horizon", "head_hidden"):
+        for name in ("history", "horizon", "head_hidden", "image_pool"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"ModelConfig.{name} must be positive, got {getattr(self, name)}")
+        h, w = self.image_shape[:2]
+        if h % self.image_pool or w % self.image_pool:
+            raise ValueError(f"ModelConfig.image_pool={self.image_pool} must divide the frame size {h}x{w}")
         cues_lib.check_unique(self.cues)
         for cue in self.cues:
             if cue.activation == "residual" and cue.anchor_key not in self.vector_keys:
@@ -169,6 +175,9 @@ class _Network(nn.Module):
         # u8[L, h, w, c] -> f32[h, w, c*L] with channel index c*L + l, as the authors stack frames.
         x = (images.astype(jnp.float32) - 128.0) / 128.0
         x = jnp.transpose(x, (1, 2, 3, 0)).reshape(x.shape[1], x.shape[2], -1)
+        if cfg.image_pool > 1:
+            p = cfg.image_pool
+            x = nn.avg_pool(x, (p, p), strides=(p, p))
         for conv in self.convs:
             x = nn.relu(conv(x))
         low = jnp.asarray(cfg.vector_low, jnp.float32)

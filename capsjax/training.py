@@ -254,7 +254,8 @@ def fit(
     manager = None
     if ckpt_dir is not None:
         manager = checkpoint.Checkpointer(ckpt_dir, save_every=save_every, keep=keep,
-                                          config=checkpoint.training_config(model, cfg, metadata))
+                                          config=checkpoint.training_config(model, cfg, metadata),
+                                          defaults=checkpoint.training_defaults(model, cfg))
         if manager.latest_step() is not None:
             state, restored = manager.restore(state)
             log.info("resumed from step %d in %s", restored, ckpt_dir)

@@ -55,6 +55,8 @@ class Preset:
     conv: tuple = capsjax.model.PAPER_CONV
     obs_hidden: tuple = (256, 128)
     save_every: int = 1000
+    image_pool: int = 1  # ModelConfig.image_pool: average-pool frames before the CNN (a CPU-budget knob)
+    mirror: bool = False  # mirror half of the training windows left-right (data.make_sampler(mirror=True))
 
 
 def ci_preset(**overrides) -> Preset:
@@ -187,7 +189,7 @@ def label_stage(exp: Experiment, preset: Preset, env, ds: data.Dataset, data_dir
 
 def model_config(exp: Experiment, preset: Preset, env) -> capsjax.ModelConfig:
     return capsjax.ModelConfig.from_env_spec(env.spec, cues=exp.cues, horizon=preset.horizon, conv=preset.conv,
-                                             obs_hidden=preset.obs_hidden)
+                                             obs_hidden=preset.obs_hidden, image_pool=preset.image_pool)
 
 
 def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, cfg: RunConfig):
@@ -289,7 +291,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     label_sources = {cue: "segmenter" for cue in exp.learned_cues}
     needed = sorted({c.source for c in exp.cues} | {"collision", "speed", "heading"})
     sampler = data.make_sampler(ds, horizon=preset.horizon, episodes=train_ids, label_sources=label_sources,
-                                signals=tuple(s for s in needed if s not in label_sources))
+                                signals=tuple(s for s in needed if s not in label_sources), mirror=preset.mirror)
     methods = [m for m in exp.methods if not cfg.methods or m.name in cfg.methods]
     params = {}
     t = time.time()

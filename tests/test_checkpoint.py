@@ -184,6 +184,28 @@ def test_another_model_config_is_refused_naming_the_field(two_steps):
             manager.restore(capsjax.init_train_state(other, CFG, jax.random.key(0)))
 
 
+def test_a_config_field_added_later_counts_as_its_default(tmp_path):
+    """A checkpoint saved before ``ModelConfig.image_pool`` existed restores when the field is at its
+    default, and is refused, naming the field, when it is not."""
+    state = capsjax.init_train_state(MODEL, CFG, jax.random.key(0))
+    old = checkpoint.training_config(MODEL, CFG)
+    del old["ModelConfig"]["image_pool"]  # what an older version wrote
+    with checkpoint.Checkpointer(tmp_path, config=old) as manager:
+        manager.save(1, state, force=True)
+    defaults = checkpoint.training_defaults(MODEL, CFG)
+    with _manager(tmp_path, defaults=defaults) as manager:
+        restored, step = manager.restore(state)
+    assert step == 1
+    _assert_trees_equal(restored.params, state.params)
+    with _manager(tmp_path) as manager:  # without defaults the absent field is a difference
+        with pytest.raises(checkpoint.ConfigMismatchError, match=r"ModelConfig\.image_pool: saved \"<absent>\" != requested 1"):
+            manager.restore(state)
+    pooled = capsjax.CAPsModel(dataclasses.replace(MODEL.config, image_pool=2))
+    with _manager(tmp_path, model=pooled, defaults=checkpoint.training_defaults(pooled, CFG)) as manager:
+        with pytest.raises(checkpoint.ConfigMismatchError, match=r"ModelConfig\.image_pool: saved 1 != requested 2"):
+            manager.restore(capsjax.init_train_state(pooled, CFG, jax.random.key(0)))
+
+
 def _largest_file(step_dir) -> str:
     files = [os.path.join(r, f) for r, _, fs in os.walk(step_dir) for f in fs]
     return max(files, key=os.path.getsize)

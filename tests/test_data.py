@@ -168,6 +168,54 @@ def test_windows_follow_the_paper_done_handling(tmp_path):
     np.testing.assert_array_equal(batch.context["final_xy"][2], [10, 20])
 
 
+def test_mirrored_windows_flip_frames_and_negate_what_the_mirror_negates(tmp_path):
+    ds = make_dataset(tmp_path / "d.zarr", [6, 5], crash=[True, False])
+    # Frames that are not left-right symmetric: column j of step s holds (s + 10 j) % 251.
+    ds = data.Dataset.open(ds.path)
+    signs = dict(data.MIRROR_SIGNS, steer=-1.0)  # this spec calls its steering action "steer"
+    plain = data.make_sampler(ds, horizon=4)
+    mirrored = data.make_sampler(ds, horizon=4, mirror=True, mirror_signs=signs)
+    cols = jnp.arange(6, dtype=jnp.uint8)[None, None, :, None] * 10
+    plain = plain.replace(images=plain.images + cols)
+    mirrored = mirrored.replace(images=mirrored.images + cols)
+    t, key = jnp.array([3, 8]), jax.random.key(0)
+    a = WINDOWS(plain, t, key)
+    b = WINDOWS(mirrored, t, key, jnp.array([True, False]))
+    np.testing.assert_array_equal(b.obs.images[0], a.obs.images[0][..., ::-1, :])
+    np.testing.assert_array_equal(b.next_obs.images[0], a.next_obs.images[0][..., ::-1, :])
+    np.testing.assert_array_equal(b.obs.images[1], a.obs.images[1])  # not flipped: unchanged
+    np.testing.assert_array_equal(b.obs.vector[0], a.obs.vector[0] * np.array([1, -1, 1]))  # heading negated
+    np.testing.assert_array_equal(b.signals["heading"][0], -a.signals["heading"][0])
+    np.testing.assert_array_equal(b.signals["speed"][0], a.signals["speed"][0])
+    np.testing.assert_array_equal(b.signals["collision"][0], a.signals["collision"][0])
+    # Executed actions: steering negated, speed kept; the random padding past the end is not mirrored.
+    np.testing.assert_array_equal(b.actions[0, :2], a.actions[0, :2] * np.array([-1, 1]))
+    np.testing.assert_array_equal(b.actions[0, 2:], a.actions[0, 2:])
+    np.testing.assert_array_equal(b.context["pose"][0], a.context["pose"][0] * np.array([1, -1, -1]))
+    np.testing.assert_array_equal(b.context["final_xy"][0], a.context["final_xy"][0] * np.array([1, -1]))
+    for name in ("actions", "valid", "done"):
+        np.testing.assert_array_equal(getattr(b, name)[1], getattr(a, name)[1])
+    # sample() mirrors about half of the windows.
+    batch = SAMPLE(mirrored, jax.random.key(3), 4000)
+    y = np.asarray(batch.context["pose"][:, 1])  # 2 s, negated when mirrored (s = 0 is ambiguous: left out)
+    assert 0.45 < (y[y != 0] < 0).mean() < 0.55
+    with pytest.raises(ValueError, match="flip needs a sampler made with make_sampler"):
+        plain.windows(t, key, jnp.array([True, False]))
+
+
+def test_mirror_refuses_a_quantity_without_a_known_sign(tmp_path):
+    ds = make_dataset(tmp_path / "d.zarr", [6, 5])
+    with pytest.raises(ValueError, match="no sign for action 'steer'"):
+        data.make_sampler(ds, horizon=3, mirror=True)
+    brightness = lambda images: {"lane_diff": jnp.mean(images, axis=(1, 2, 3)) / 255.0}
+    data.relabel(ds, brightness, "seg", batch_size=5, meta={}, scene="fast")
+    signs = dict(data.MIRROR_SIGNS, steer=-1.0)
+    with pytest.raises(ValueError, match="no sign for signal 'lane_diff'"):  # right-hand traffic has no mirror
+        data.make_sampler(ds, horizon=3, label_sources={"lane_diff": "seg"}, mirror=True, mirror_signs=signs)
+    with pytest.raises(ValueError, match=r"mirror_signs\['speed'\] must be \+1 or -1"):
+        data.make_sampler(ds, horizon=3, mirror=True, mirror_signs=dict(signs, speed=0.5))
+
+
 def test_sampling_is_uniform_over_valid_starts_and_jittable(tmp_path):
     ds = make_dataset(tmp_path / "d.zarr", [3, 9, 5, 2])
     sampler = data.make_sampler(ds, horizon=2)

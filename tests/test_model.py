@@ -106,6 +106,28 @@ def test_config_validation_names_the_field():
         ModelConfig(**{**SMALL.__dict__, "vector_keys": ("a", "b", "c")})
     with pytest.raises(ValueError, match="action_low"):
         ModelConfig(**{**SMALL.__dict__, "action_low": (1.0, 1.0), "action_high": (0.0, 0.0)})
+    with pytest.raises(ValueError, match="image_pool=3 must divide the frame size 16x32"):
+        ModelConfig(**{**SMALL.__dict__, "image_pool": 3})
+    with pytest.raises(ValueError, match="image_pool must be positive"):
+        ModelConfig(**{**SMALL.__dict__, "image_pool": 0})
+
+
+def test_image_pool_feeds_the_cnn_block_averaged_frames():
+    """Pooling by p equals running the unpooled model on frames made of p x p blocks of equal pixels
+    whose value is the block mean, and shrinks the CNN's output (fewer obs-MLP inputs)."""
+    pooled_cfg = ModelConfig(**{**SMALL.__dict__, "image_pool": 2})
+    small_cfg = ModelConfig(**{**SMALL.__dict__, "image_shape": (8, 16, 1)})
+    pooled, small = CAPsModel(pooled_cfg), CAPsModel(small_cfg)
+    params = small.init(jax.random.key(0))
+    assert jax.tree.map(jnp.shape, pooled.init(jax.random.key(0))) == jax.tree.map(jnp.shape, params)
+    # Frames of 2x2 blocks of one even value: their block means are exact bytes.
+    blocks = jax.random.randint(jax.random.key(1), (4, 8, 16, 1), 0, 128).astype(jnp.uint8) * 2
+    obs = _obs(SMALL)
+    big = Observation(jnp.repeat(jnp.repeat(blocks, 2, axis=1), 2, axis=2), obs.vector)
+    a = pooled.encode(params, big)
+    b = small.encode(params, Observation(blocks, obs.vector))
+    np.testing.assert_allclose(a.h, b.h, atol=1e-5)
+    np.testing.assert_allclose(a.c, b.c, atol=1e-5)
 
 
 def test_user_defined_cue_needs_no_library_change():

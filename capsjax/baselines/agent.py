@@ -409,7 +409,8 @@ def checkpointer(agent: BaselineAgent, train_cfg: training.TrainConfig, director
     """The CAPs orbax helper with this baseline's configs saved beside every step (and checked on restore)."""
     config = checkpoint_lib.training_config(agent.model, train_cfg, {
         "BaselineConfig": agent.config, "plan_low": agent.plan_low, "plan_high": agent.plan_high})
-    return checkpoint_lib.Checkpointer(directory, config=config, **kwargs)
+    defaults = checkpoint_lib.training_defaults(agent.model, train_cfg, {"BaselineConfig": agent.config})
+    return checkpoint_lib.Checkpointer(directory, config=config, defaults=defaults, **kwargs)
 
 
 def fit_offline(agent: BaselineAgent, train_cfg: training.TrainConfig, sample_batch: Callable, num_steps: int, *,
