@@ -5,16 +5,20 @@ Every benchmark prints JSON lines, one per figure::
     {"metric": "planner.plan_ms_p50", "value": 71.2, "unit": "ms", "device": "cpu", ...config}
 
 Speed targets are judged by ratios to a reference measured in the same run (machines are shared and
-noisy), never by timed unit tests.
+noisy), never by timed unit tests.  On an AVX-512 CPU every benchmark compiles with 512-bit vectors, as
+the experiments do (``experiments/runtime.py``); the lines record the ``XLA_FLAGS`` they ran with.
 """
 from __future__ import annotations
 
 import importlib
 import json
+import os
 import platform
 import sys
 
 import jax
+
+from experiments import runtime
 
 BENCHMARKS = ("planner", "envs", "collect", "scale")
 
@@ -28,6 +32,7 @@ def device_context() -> dict:
         "num_devices": len(devices),
         "host": platform.node(),
         "jax": jax.__version__,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
     }
 
 
@@ -42,6 +47,7 @@ def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] not in BENCHMARKS:
         raise SystemExit(f"usage: python -m experiments.bench NAME [options]; NAME is one of {', '.join(BENCHMARKS)}")
+    runtime.use_wide_vectors()  # what the experiments use too (experiments/runtime.py); XLA_FLAGS overrides
     importlib.import_module(f"experiments.benchmarks.{argv[0]}").main(argv[1:])
 
 

@@ -12,7 +12,6 @@ paper (Q1): the same CAPs model drives to the goals at 4 m/s.
 from __future__ import annotations
 
 import numpy as np
-import tyro
 
 from capsjax import baselines, cues
 from experiments import labellers as labeller_experiment
@@ -74,4 +73,4 @@ def main(cfg: pipeline.RunConfig) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(pipeline.RunConfig, description=__doc__))
+    pipeline.cli(main, __doc__)

@@ -13,7 +13,6 @@ and no paper experiment used.
 from __future__ import annotations
 
 import numpy as np
-import tyro
 
 from capsjax import baselines, cues
 from experiments import pipeline
@@ -83,4 +82,4 @@ def main(cfg: pipeline.RunConfig) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(pipeline.RunConfig, description=__doc__))
+    pipeline.cli(main, __doc__)

@@ -20,7 +20,6 @@ a training step from ~100 to ~40 ms on the 2-core CPU and keeps the run within i
 from __future__ import annotations
 
 import numpy as np
-import tyro
 
 from capsjax import baselines, cues
 from experiments import labellers as labeller_experiment
@@ -90,4 +89,4 @@ def main(cfg: pipeline.RunConfig) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(pipeline.RunConfig, description=__doc__))
+    pipeline.cli(main, __doc__)

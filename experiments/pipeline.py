@@ -24,12 +24,13 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import tyro
 
 import capsjax
 import envs
 from capsjax import baselines, collect, data, labellers, mpc, sharding, training
 from capsjax.reward import RewardSpec
-from experiments import report
+from experiments import report, runtime
 
 METHOD_KINDS = ("caps",) + baselines.KINDS
 HOLDOUT_FRACTION = 0.1
@@ -122,6 +123,14 @@ class RunConfig:
     """Evaluate only these methods (default: all of the experiment's)."""
     progress: bool = True
     """Progress bars for every long stage."""
+
+
+def cli(main: Callable[[RunConfig], dict], description: str) -> dict:
+    """An experiment's ``python -m`` entry point: parse the options (tyro), let XLA:CPU use 512-bit vectors
+    on an AVX-512 host before JAX starts (``experiments.runtime``; ``XLA_FLAGS`` overrides), run."""
+    cfg = tyro.cli(RunConfig, description=description)
+    runtime.use_wide_vectors()
+    return main(cfg)
 
 
 def resolve_paths(exp: Experiment, cfg: RunConfig) -> tuple[Path, Path]:
