@@ -1,6 +1,9 @@
 """The three experiments end to end on their ``ci`` preset (slow: each collects, labels, trains and
 evaluates for real), plus the pieces of the pipeline that are cheap to check."""
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -75,3 +78,10 @@ def test_ci_preset_runs_end_to_end_and_resumes(module, tmp_path):
     again = module.main(cfg)
     assert again["dataset"]["steps"] == steps
     assert again["timings_s"]["collect_s"] < out["timings_s"]["collect_s"]
+
+
+def test_command_line_help_explains_every_option():
+    out = subprocess.run([sys.executable, "-m", "experiments.indoor", "--help"], capture_output=True, text=True,
+                         check=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    for option in ("--preset", "--seed", "--out", "--data-dir", "--train-seed", "--methods"):
+        assert option in out.stdout, option
