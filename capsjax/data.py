@@ -754,11 +754,12 @@ def make_sampler(ds: Dataset, *, horizon: int, episodes=None, label_sources: dic
     high = np.asarray(spec.plan_high if plan_high is None else plan_high, np.float32)
     if low.shape != (spec.action_dim,) or high.shape != (spec.action_dim,):
         raise ValueError(f"plan_low/plan_high must have shape ({spec.action_dim},), got {low.shape} / {high.shape}")
+    signal_arrays = {k.split("/", 1)[1]: v for k, v in loaded.items() if k.startswith("signal/")}
     mirror_fields = {}
     if mirror:
         signs = dict(MIRROR_SIGNS if mirror_signs is None else mirror_signs)
         names = [("vector key", k) for k in spec.vector_keys] + [("action", a) for a in spec.action_names]
-        names += [("signal", k.split("/", 1)[1]) for k in loaded if k.startswith("signal/")]
+        names += [("signal", k) for k in signal_arrays]
         for kind, name in names:
             if name not in signs:
                 raise ValueError(f"mirror=True, but mirror_signs has no sign for {kind} {name!r} (how it changes "
@@ -768,12 +769,11 @@ def make_sampler(ds: Dataset, *, horizon: int, episodes=None, label_sources: dic
         mirror_fields = dict(
             mirror=True, vector_sign=jnp.asarray([signs[k] for k in spec.vector_keys], jnp.float32),
             action_sign=jnp.asarray([signs[a] for a in spec.action_names], jnp.float32),
-            signal_sign={k.split("/", 1)[1]: jnp.float32(signs[k.split("/", 1)[1]])
-                         for k in loaded if k.startswith("signal/")})
+            signal_sign={k: jnp.float32(signs[k]) for k in signal_arrays})
     return WindowSampler(
         images=jnp.asarray(loaded["image"]), vector=jnp.asarray(loaded["vector"]),
         action=jnp.asarray(loaded["action"]), pose=jnp.asarray(loaded["pose"]),
-        signals={k.split("/", 1)[1]: jnp.asarray(v) for k, v in loaded.items() if k.startswith("signal/")},
+        signals={k: jnp.asarray(v) for k, v in signal_arrays.items()},
         episode_start=jnp.asarray(ep_start), episode_end=jnp.asarray(ep_end), starts=jnp.asarray(window_starts),
         plan_low=jnp.asarray(low), plan_high=jnp.asarray(high), horizon=horizon, history=spec.history,
         **mirror_fields,

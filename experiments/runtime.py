@@ -6,7 +6,7 @@
   prefers 256-bit vectors by default (wide vectors lower the clock on some older Intel parts), which
   leaves half of each vector unit idle in the renderer's and the physics' elementwise loops: measured on
   this project's AMD EPYC host, 512-bit vectors render forest frames 1.3-1.4x and city frames ~1.45x
-  faster, step the forest env ~1.2x faster and cast ``mjx.ray`` ~1.15x faster (README, "The worlds").
+  faster, step the forest env ~1.2x faster and cast ``mjx.ray`` ~1.15x faster (README, Design).
   Matrix products and convolutions run in libraries that choose their own vector width.
 
 Both respect a value already in ``XLA_FLAGS`` (the caller's environment decides, e.g.

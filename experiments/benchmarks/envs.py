@@ -45,6 +45,7 @@ from envs.camera import mjx_ray_depth, render
 from experiments.bench import emit
 from experiments.runtime import use_host_devices
 
+
 def _mesh_for(batch: int):
     """The largest mesh of local devices that splits ``batch`` evenly, and its device count."""
     count = max(d for d in range(1, jax.local_device_count() + 1) if batch % d == 0)
