@@ -49,7 +49,7 @@ SCHEMA_VERSION = 1
 CAPACITY = 1 << 40  # fixed array length: zarr stores only written chunks, so the size costs nothing
 EPISODE_CHUNK = 4096
 LABELLED_CHUNK = 256
-SPLITS = ("train", "eval")
+SPLITS = ("train", "eval", "val")  # envs.base.TASK_SPLITS, in the order stored episodes index it
 _COMMIT = "commit.json"
 
 

@@ -31,6 +31,18 @@ from flax import struct
 
 CONTROL_DT = 0.25  # seconds of physics per control step (the paper's 4 Hz)
 
+# Task splits, each its own random stream.  'train' tasks are what data are collected on; 'eval' tasks are
+# the reported test; 'val' tasks are of the eval kind (same paths, goals, driving direction) on a third
+# stream, disjoint from both, for choosing rewards and settings without ever looking at 'eval'.
+TASK_SPLITS = ("train", "eval", "val")
+
+
+def split_key(key: jax.Array, split: str) -> jax.Array:
+    """The random stream of one task split (train -> 0, eval -> 1, val -> 2: the first two as before)."""
+    if split not in TASK_SPLITS:
+        raise ValueError(f"split must be one of {TASK_SPLITS}, got {split!r}")
+    return jax.random.fold_in(key, TASK_SPLITS.index(split))
+
 
 @struct.dataclass
 class Observation:
@@ -110,7 +122,8 @@ class Env(abc.ABC):
 
     @abc.abstractmethod
     def sample_task(self, key: jax.Array, split: str = "train") -> Any:
-        """A task drawn from ``split`` ('train' or 'eval'); the two draw from disjoint seeds/regions."""
+        """A task drawn from ``split`` (one of ``TASK_SPLITS``); splits draw from disjoint seeds/regions, and
+        'val' draws the 'eval' kind of task (``split_key``)."""
 
     def check_task(self, task: Any) -> None:
         """Raise a ValueError naming the field when ``task`` does not match this env's task shapes."""

@@ -136,11 +136,9 @@ class FastEnv(base.Env):
         )
 
     def sample_task(self, key, split="train"):
-        """Random obstacles; 'train' and 'eval' layouts come from disjoint key streams."""
-        if split not in ("train", "eval"):
-            raise ValueError(f"split must be 'train' or 'eval', got {split!r}")
+        """Random obstacles; each split's layouts come from its own key stream (``base.split_key``)."""
         cfg = self.config
-        key = jax.random.fold_in(key, 0 if split == "train" else 1)
+        key = base.split_key(key, split)
         k_pos, k_rad, k_yaw = jax.random.split(key, 3)
         span = cfg.arena_half - 1.5
         pos = jax.random.uniform(k_pos, (cfg.num_obstacles, 2), minval=-span, maxval=span)

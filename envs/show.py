@@ -1,4 +1,4 @@
-"""Pictures of a scene: ``python -m envs.show NAME [--seed S] [--split train|eval] [--out PATH] [--mjcf PATH]``.
+"""Pictures of a scene: ``python -m envs.show NAME [--seed S] [--split train|eval|val] [--out PATH] [--mjcf PATH]``.
 
 Writes one PNG: a bird's-eye view of the layout (ground paint, obstacles by semantic class, the task:
 forest path, city goal, halls route with its intersections and commands) with the trajectory of a
@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m envs.show", description=__doc__.splitlines()[0])
     parser.add_argument("name", help=f"one of {', '.join(envs.SCENES)}")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--split", choices=("train", "eval"), default="train")
+    parser.add_argument("--split", choices=base.TASK_SPLITS, default="train")
     parser.add_argument("--steps", type=int, default=40, help="control steps of the demo drive")
     parser.add_argument("--frames", type=int, default=6, help="first-person frames in the strip")
     parser.add_argument("--out", default=None, help="PNG path (default results/show/NAME.png)")

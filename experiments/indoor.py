@@ -27,11 +27,13 @@ from experiments import pipeline
 from experiments.pipeline import Method, Preset
 
 PRESETS = {
-    "ci": pipeline.ci_preset(image_pool=2, mirror=True),  # exercises both knobs of the small preset
+    "ci": pipeline.ci_preset(image_pool=2, mirror=True, cem_return="mean"),  # exercises the small preset's knobs
+    # The elite mean chosen on the 'val' split (8 clockwise loops, never 'eval'): paper reward no crash
+    # 62 %, the best sample 38 %.
     "small": Preset(collect_steps=60_000, collect_robots=64, episode_length=300, train_steps=6000,
                     baseline_steps=3000, eval_episodes=8, eval_steps=640, cem=(512, 128, 3, 32), horizon=12,
                     learning_rate=5e-4, labelled_fraction=0.005, segmenter_steps=400, save_every=1000,
-                    image_pool=2, mirror=True),
+                    image_pool=2, mirror=True, cem_return="mean"),
     "paper": Preset(collect_steps=158_400, collect_robots=256, episode_length=600, train_steps=360_000,
                     baseline_steps=360_000, eval_episodes=16, eval_steps=640, cem=(4096, 1024, 4, 128), horizon=12,
                     labelled_fraction=0.002, segmenter_steps=5000, save_every=10_000, mirror=True),

@@ -20,6 +20,7 @@ import json
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -58,6 +59,7 @@ class Preset:
     save_every: int = 1000
     image_pool: int = 1  # ModelConfig.image_pool: average-pool frames before the CNN (a CPU-budget knob)
     mirror: bool = False  # mirror half of the training windows left-right (data.make_sampler(mirror=True))
+    cem_return: str = "best"  # CEMConfig.return_mode of every method's planner: the paper's 'best' or 'mean'
 
 
 def ci_preset(**overrides) -> Preset:
@@ -113,8 +115,12 @@ class RunConfig:
     or 'paper' (the paper's data sizes, horizon and CEM; meant for a GPU)."""
     seed: int = 0
     """Evaluation seed: the eval tasks (layouts, paths, goals) come from this seed's 'eval' stream."""
+    split: Literal["eval", "val"] = "eval"
+    """Task split to evaluate on: 'eval' (the reported test) or 'val' (tasks of the same kind from a third
+    stream, disjoint from training and from 'eval': for choosing rewards and planner settings)."""
     out: Path | None = None
-    """Output folder of this run (default ``results/<experiment>/<preset>_seed<seed>``)."""
+    """Output folder of this run (default ``results/<experiment>/<preset>_seed<seed>``, with ``_val`` before
+    ``_seed`` for the 'val' split)."""
     data_dir: Path | None = None
     """Dataset and trained models, shared by every evaluation seed (default ``datasets/<experiment>/<preset>``)."""
     train_seed: int = 0
@@ -134,7 +140,8 @@ def cli(main: Callable[[RunConfig], dict], description: str) -> dict:
 
 
 def resolve_paths(exp: Experiment, cfg: RunConfig) -> tuple[Path, Path]:
-    run_dir = cfg.out if cfg.out is not None else Path("results") / exp.name / f"{cfg.preset}_seed{cfg.seed}"
+    split = "" if cfg.split == "eval" else f"_{cfg.split}"
+    run_dir = cfg.out if cfg.out is not None else Path("results") / exp.name / f"{cfg.preset}{split}_seed{cfg.seed}"
     data_dir = cfg.data_dir if cfg.data_dir is not None else Path("datasets") / exp.name / f"{cfg.preset}_train{cfg.train_seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
     data_dir.mkdir(parents=True, exist_ok=True)
@@ -232,9 +239,10 @@ def goal_heading_from_env(state, spec: RewardSpec) -> RewardSpec:
 
 
 def cem_config(preset: Preset, env, horizon: int) -> capsjax.CEMConfig:
+    """The planner of every method (CAPs at the preset's horizon, the one-step baselines at 1)."""
     init, samples, iterations, elites = preset.cem
     return capsjax.CEMConfig(env.spec.plan_low, env.spec.plan_high, horizon=horizon, init_samples=init,
-                             samples=samples, iterations=iterations, elites=elites)
+                             samples=samples, iterations=iterations, elites=elites, return_mode=preset.cem_return)
 
 
 def evaluate(exp: Experiment, preset: Preset, env, method: Method, policy: mpc.Policy, params, spec: RewardSpec,
@@ -260,10 +268,11 @@ def _largest_divisor(n: int, most: int) -> int:
     return max(d for d in range(1, most + 1) if n % d == 0)
 
 
-def eval_tasks(env, preset: Preset, seed: int):
-    """The evaluation tasks: the env's 'eval' stream (disjoint from every training task), seeded."""
+def eval_tasks(env, preset: Preset, seed: int, split: str = "eval"):
+    """The evaluation tasks: the env's 'eval' stream (disjoint from every training task), seeded; or its
+    'val' stream (tasks of the same kind, disjoint from both) for choosing settings."""
     keys = jax.random.split(jax.random.key(1_000_000 + seed), preset.eval_episodes)
-    return jax.jit(jax.vmap(lambda k: env.sample_task(k, "eval")))(keys)
+    return jax.jit(jax.vmap(lambda k: env.sample_task(k, split)))(keys)
 
 
 # --------------------------------------------------------------------------------------------- run
@@ -315,14 +324,15 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
 
     holdout_loss = holdout_losses(model, params.get("caps"), ds, holdout_ids, preset, label_sources, needed)
 
-    tasks = eval_tasks(env, preset, cfg.seed)
+    tasks = eval_tasks(env, preset, cfg.seed, cfg.split)
     cem = cem_config(preset, env, preset.horizon)
     poses, per_episode = {}, {}
     for method in methods:
         t = time.time()
         cache = run_dir / "eval" / f"{method.name}.npz"
         key = json.dumps({"method": dataclasses.asdict(method), "preset": dataclasses.asdict(preset),
-                          "data_dir": str(data_dir)}, sort_keys=True, default=str)
+                          "data_dir": str(data_dir), **({"split": cfg.split} if cfg.split != "eval" else {})},
+                         sort_keys=True, default=str)
         cached = _load_eval(cache, key)
         if cached is not None:
             poses[method.name], per_episode[method.name] = cached
@@ -332,10 +342,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         if method.kind == "caps":
             policy = mpc.caps_policy(model, cem)
         else:
-            init, samples, iterations, elites = preset.cem
-            policy = baselines.baseline_policy(agents[method.kind], capsjax.CEMConfig(
-                env.spec.plan_low, env.spec.plan_high, horizon=1, init_samples=init, samples=samples,
-                iterations=iterations, elites=elites))
+            policy = baselines.baseline_policy(agents[method.kind], cem_config(preset, env, horizon=1))
         traj = jax.device_get(evaluate(exp, preset, env, method, policy, params[method.kind], spec, tasks, cfg.seed))
         poses[method.name] = np.asarray(traj.pose)
         per_episode[method.name] = {k: np.asarray(v) for k, v in exp.episode_metrics(traj, env).items()}
@@ -347,7 +354,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     metrics = {name: report.summarize(values) for name, values in per_episode.items()}
     verdict = compare(exp, metrics)
     out = {
-        "experiment": exp.name, "preset": cfg.preset, "seed": cfg.seed, "train_seed": cfg.train_seed,
+        "experiment": exp.name, "preset": cfg.preset, "seed": cfg.seed, "split": cfg.split, "train_seed": cfg.train_seed,
         "metrics": metrics, "paper": exp.paper, "comparison": verdict, "labeller": labeller_quality,
         "holdout_loss": holdout_loss, "dataset": {"episodes": ds.num_episodes, "steps": ds.num_steps,
                                                   "train_episodes": len(train_ids), "holdout_episodes": len(holdout_ids)},
@@ -355,14 +362,14 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         "per_episode": {m: {k: v.tolist() for k, v in d.items()} for m, d in per_episode.items()},
     }
     report.write_json(run_dir / "metrics.json", out)
-    notes = list(exp.notes) + [f"Preset `{cfg.preset}`, eval seed {cfg.seed}, {preset.eval_episodes} eval episodes of "
+    notes = list(exp.notes) + [f"Preset `{cfg.preset}`, {cfg.split} seed {cfg.seed}, {preset.eval_episodes} {cfg.split} episodes of "
                                f"at most {preset.eval_steps} steps; cells: mean [95 % bootstrap CI over episodes]."]
     notes += [f"{m.name}: {m.description}" for m in methods if m.description]
     (run_dir / "table.md").write_text(report.table(metrics, exp.columns, exp.paper, title=f"{exp.name} ({cfg.preset})",
                                                    notes=notes))
     t = time.time()
     write_figures(exp, preset, env, run_dir, tasks, poses, model, params.get("caps"),
-                  next((m for m in methods if m.kind == "caps"), None), cem, cfg.seed)
+                  next((m for m in methods if m.kind == "caps"), None), cem, cfg.seed, cfg.split)
     timings["figures_s"] = time.time() - t
     report.write_json(run_dir / "metrics.json", dict(out, timings_s=timings))
     print((run_dir / "table.md").read_text())
@@ -397,7 +404,7 @@ def holdout_losses(model, params, ds, holdout_ids, preset: Preset, label_sources
     return {k: float(v) for k, v in m.items()}
 
 
-def write_figures(exp, preset, env, run_dir: Path, tasks, poses, model, caps_params, caps_method, cem, seed):
+def write_figures(exp, preset, env, run_dir: Path, tasks, poses, model, caps_params, caps_method, cem, seed, split="eval"):
     panels = []
     reset = jax.jit(env.reset)
     for i in range(min(3, preset.eval_episodes)):
@@ -405,7 +412,7 @@ def write_figures(exp, preset, env, run_dir: Path, tasks, poses, model, caps_par
         first = reset(jax.random.key(0), task)
         drives = {name: pose[i] for name, pose in poses.items()}
         panels.append({"scene": first.physics.scene, "task": task, "drives": drives,
-                       "first_pose": np.asarray(first.info["pose"]), "title": f"eval task {i} (seed {seed})"})
+                       "first_pose": np.asarray(first.info["pose"]), "title": f"{split} task {i} (seed {seed})"})
     train_task = env.sample_task(jax.random.key(0), "train")
     panels.append({"scene": reset(jax.random.key(0), train_task).physics.scene, "task": train_task,
                    "title": "a training task (data collection)"})

@@ -15,7 +15,7 @@ import pytest
 import zarr
 
 from capsjax import cues, data
-from envs.base import EnvSpec
+from envs.base import TASK_SPLITS, EnvSpec
 
 # One compiled function each for the module (eager mode would compile every primitive separately).
 SAMPLE = jax.jit(data.WindowSampler.sample, static_argnums=2)
@@ -227,6 +227,11 @@ def test_sampling_is_uniform_over_valid_starts_and_jittable(tmp_path):
     expected = 20_000 / len(valid_starts)
     assert np.all(np.abs(counts[valid_starts] - expected) < 5 * np.sqrt(expected))
     assert batch.obs.images.shape == (20_000, 4, 4, 6, 1) and batch.actions.shape == (20_000, 2, 2)
+
+
+def test_stored_split_codes_follow_the_env_task_splits():
+    # Episodes store their split as an index into data.SPLITS: the order must be the envs' and only grow.
+    assert data.SPLITS == TASK_SPLITS and data.SPLITS[:2] == ("train", "eval")
 
 
 def test_holdout_split_is_disjoint_by_episode(tmp_path):

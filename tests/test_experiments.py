@@ -1,5 +1,6 @@
 """The three experiments end to end on their ``ci`` preset (slow: each collects, labels, trains and
 evaluates for real), plus the pieces of the pipeline that are cheap to check."""
+import dataclasses
 import json
 import os
 import subprocess
@@ -8,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 
+import envs
 from experiments import city, forest, indoor, pipeline, report
 
 
@@ -80,8 +82,32 @@ def test_ci_preset_runs_end_to_end_and_resumes(module, tmp_path):
     assert again["timings_s"]["collect_s"] < out["timings_s"]["collect_s"]
 
 
+def test_val_split_has_its_own_tasks_and_run_folder(tmp_path):
+    env = envs.make("forest")
+    preset = dataclasses.replace(forest.PRESETS["ci"], eval_episodes=3)
+    eval_paths = np.asarray(pipeline.eval_tasks(env, preset, 0).path)
+    val_paths = np.asarray(pipeline.eval_tasks(env, preset, 0, "val").path)
+    assert eval_paths.shape == val_paths.shape and not np.allclose(eval_paths, val_paths)
+    cfg = pipeline.RunConfig(preset="ci", split="val", data_dir=tmp_path / "data")
+    cwd = os.getcwd()
+    try:
+        os.chdir(tmp_path)
+        run_dir, _ = pipeline.resolve_paths(forest.EXPERIMENT, cfg)
+    finally:
+        os.chdir(cwd)
+    assert run_dir.as_posix() == "results/forest/ci_val_seed0"  # never the eval run's folder
+
+
+def test_every_method_plans_with_the_presets_return_mode():
+    env = envs.make("forest")
+    preset = dataclasses.replace(forest.PRESETS["ci"], cem_return="mean")
+    assert pipeline.cem_config(preset, env, horizon=1).return_mode == "mean"
+    with pytest.raises(ValueError, match="return_mode"):
+        pipeline.cem_config(dataclasses.replace(preset, cem_return="median"), env, horizon=4)
+
+
 def test_command_line_help_explains_every_option():
     out = subprocess.run([sys.executable, "-m", "experiments.indoor", "--help"], capture_output=True, text=True,
                          check=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
-    for option in ("--preset", "--seed", "--out", "--data-dir", "--train-seed", "--methods"):
+    for option in ("--preset", "--seed", "--split", "--out", "--data-dir", "--train-seed", "--methods"):
         assert option in out.stdout, option

@@ -57,7 +57,9 @@ def test_wrong_action_shape_and_task_shape_are_clear_errors():
 def test_train_and_eval_tasks_differ():
     a = ENV.sample_task(jax.random.key(0), "train")
     b = ENV.sample_task(jax.random.key(0), "eval")
+    c = ENV.sample_task(jax.random.key(0), "val")
     assert not np.allclose(a.obstacles, b.obstacles)
+    assert not np.allclose(a.obstacles, c.obstacles) and not np.allclose(b.obstacles, c.obstacles)
     with pytest.raises(ValueError, match="split"):
         ENV.sample_task(jax.random.key(0), "test")
 

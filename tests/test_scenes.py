@@ -146,8 +146,9 @@ def test_two_seeds_two_layouts_one_compiled_step(scene_run):
 def test_train_and_eval_tasks_differ(scene_run):
     env = scene_run["env"]
     key = jax.random.key(5)
-    train, eval_ = env.sample_task(key, "train"), env.sample_task(key, "eval")
-    assert any(not np.allclose(np.asarray(a), np.asarray(b)) for a, b in zip(jax.tree.leaves(train), jax.tree.leaves(eval_)))
+    train, eval_, val = (env.sample_task(key, split) for split in ("train", "eval", "val"))
+    for one, other in ((train, eval_), (train, val), (eval_, val)):
+        assert any(not np.allclose(np.asarray(a), np.asarray(b)) for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(other)))
     with pytest.raises(ValueError, match="split"):
         env.sample_task(key, "test")
 

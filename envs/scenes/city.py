@@ -11,7 +11,7 @@ near the start pose are removed (unused slots).
 
 Tasks: drive from a start pose (right lane of a road segment, facing along it) to a goal location (the
 middle of another road segment, at least ``min_goal_distance`` away).  'train' goals are on the
-even-numbered road segments, 'eval' goals on the odd ones, and the two splits use disjoint layout
+even-numbered road segments, 'eval' and 'val' goals on the odd ones, and the splits use disjoint layout
 seeds.  ``info['goal_heading']`` is the direction from the car to the goal.
 
 Signals add ``lane_seen`` and ``lane_diff`` (the right lane's visibility and centre offset in the image,

@@ -173,10 +173,8 @@ class SceneEnv(base.Env, abc.ABC):
         )
 
     def split_key(self, key: jax.Array, split: str) -> jax.Array:
-        """Disjoint random streams for the 'train' and 'eval' splits."""
-        if split not in ("train", "eval"):
-            raise ValueError(f"split must be 'train' or 'eval', got {split!r}")
-        return jax.random.fold_in(key, 0 if split == "train" else 1)
+        """Disjoint random streams for the task splits (``base.split_key``)."""
+        return base.split_key(key, split)
 
 
 # ------------------------------------------------------------------------------------- path geometry

@@ -10,7 +10,8 @@ shares one compiled step.
 
 Tasks: follow a path given as a polyline of ``path_points`` vertices.  'train' draws circles (the
 paper's training path) centred near the middle of the arena; 'eval' draws sinusoids of random
-amplitude and wavelength crossing the arena in one of four directions, from a disjoint seed stream.
+amplitude and wavelength crossing the arena in one of four directions, from a disjoint seed stream;
+'val' draws sinusoids too, in layouts of a third stream (for tuning without touching 'eval').
 The paths ignore the obstacles (as in the paper): the car has to leave the path to get around a tree.
 ``info['goal_heading']`` points from the car to the path point ``lookahead`` m ahead of the car's
 projection on it (a pursuit point: on the path this is about the tangent; off the path, after going

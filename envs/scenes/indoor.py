@@ -9,7 +9,7 @@ thin boxes of class DOOR (a distinct wood colour) standing 3 cm proud of random 
 positions come from the seed, their count is fixed.
 
 Tasks: drive once around the loop from a start point (at least ``start_margin`` from any
-intersection) -- counter-clockwise for 'train', clockwise for 'eval', with disjoint door seeds.  The
+intersection) -- counter-clockwise for 'train', clockwise for 'eval' and 'val', with disjoint door seeds.  The
 route is a closed polyline; at each intersection a heading command (the world heading of the route's
 outgoing corridor: turn at a corner, straight at the middle junction) is issued ``command_lead_s``
 seconds (at the fixed speed) before the car reaches it, and stays until the next one.
