@@ -114,7 +114,7 @@ class RunConfig:
     """'ci' (a minute or two, used by the tests), 'small' (the default: a full result on a 2-core CPU)
     or 'paper' (the paper's data sizes, horizon and CEM; meant for a GPU)."""
     seed: int = 0
-    """Evaluation seed: the eval tasks (layouts, paths, goals) come from this seed's 'eval' stream."""
+    """Evaluation seed: the evaluated tasks (layouts, paths, goals) come from this seed's stream of ``--split``."""
     split: Literal["eval", "val"] = "eval"
     """Task split to evaluate on: 'eval' (the reported test) or 'val' (tasks of the same kind from a third
     stream, disjoint from training and from 'eval': for choosing rewards and planner settings)."""
