@@ -654,6 +654,28 @@ class WindowSampler:
         t = self.starts[jax.random.randint(k_start, (batch_size,), 0, self.starts.shape[0])]
         return self.windows(t, k_act, flip)
 
+    def batches(self, batch_size: int) -> "BatchSource":
+        """This sampler bound to ``batch_size``: ``source(key) -> Batch``, a pytree callable to hand to
+        ``training.fit`` / ``baselines.fit_offline`` (which then pass the buffers to the compiled step as
+        arguments instead of compiling the dataset into it)."""
+        if not isinstance(batch_size, int) or isinstance(batch_size, bool) or batch_size <= 0:
+            raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+        return BatchSource(self, batch_size)
+
+
+@struct.dataclass
+class BatchSource:
+    """``source(key) -> Batch`` of ``batch_size`` windows of ``sampler`` (``WindowSampler.batches``).
+
+    A pytree rather than a closure so that jitted training sees the sampler's buffers as arguments
+    (``training.ArraySplit``)."""
+
+    sampler: WindowSampler
+    batch_size: int = struct.field(pytree_node=False)
+
+    def __call__(self, key: jax.Array):
+        return self.sampler.sample(key, self.batch_size)
+
 
 # How a named vector entry, action or signal changes when the world is mirrored left-right (y -> -y,
 # so yaw -> -yaw and a left turn becomes a right one): kept (+1) or negated (-1).  Right-lane cues

@@ -391,8 +391,8 @@ def train_segmenter(cfg: SegmenterConfig, images, semantic, key: jax.Array, step
     while done < steps:
         n = min(train_cfg.chunk, steps - done)
         if n not in runners:
-            runners[n] = repeat_steps(lambda c, x: step(c, x, images, targets), n)
-        carry, chunk_losses = runners[n](carry)
+            runners[n] = repeat_steps(lambda c, data: step(c, None, *data), n)
+        carry, chunk_losses = runners[n](carry, (images, targets))
         losses.append(np.asarray(chunk_losses))
         done += n
         if progress is not None:

@@ -24,6 +24,7 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 
@@ -154,28 +155,41 @@ def make_train_step(model, cfg: TrainConfig) -> Callable:
 def make_train(model, cfg: TrainConfig, sample_batch: Callable, num_steps: int, *, mesh=None) -> Callable:
     """``train(state) -> (state, metrics[num_steps])``: ``num_steps`` jitted steps (``repeat_steps``).
 
-    ``sample_batch(key) -> Batch`` draws a batch of ``cfg.batch_size`` windows (a pure function, e.g.
-    a jitted window sampler over a device-resident buffer).  Call ``train`` repeatedly for logging or
-    checkpointing between chunks.
+    ``sample_batch(key) -> Batch`` draws a batch of ``cfg.batch_size`` windows.  Pass a pytree callable
+    such as ``WindowSampler.batches(cfg.batch_size)`` (``capsjax.data``): its buffers then reach the
+    compiled program as arguments (``ArraySplit``).  A plain closure over a sampler works too, but
+    compiles the whole dataset into the program as constants (``ArraySplit`` says what that costs).
+    Call ``train`` repeatedly for logging or checkpointing between chunks.
 
     With a ``mesh`` (``capsjax.sharding.make_mesh``) each batch is sharded over the mesh's devices
-    along its window axis and the state is replicated: the same step, data-parallel.
+    along its window axis and the state (and the sampler's buffers) replicated: the same step,
+    data-parallel.
     """
     if not isinstance(num_steps, int) or num_steps <= 0:
         raise ValueError(f"num_steps must be a positive int, got {num_steps!r}")
-    train_step = make_train_step(model, cfg)
     if mesh is not None and cfg.batch_size % mesh.devices.size:
         raise ValueError(
             f"TrainConfig.batch_size ({cfg.batch_size}) must be a multiple of the mesh's {mesh.devices.size} devices"
         )
+    arrays, split = ArraySplit.of(sample_batch)
+    run = _train_program(model, cfg, split, num_steps, mesh)
+    if mesh is not None:
+        arrays = jax.device_put(arrays, sharding_lib.replicated_sharding(mesh))
+    return functools.partial(run, data=arrays)
 
-    def body(state, _):
+
+@functools.lru_cache(maxsize=32)
+def _train_program(model, cfg: TrainConfig, split: "ArraySplit", num_steps: int, mesh):
+    # Cached on the sampler's structure, not its buffers: repeated ``fit`` calls with the same model,
+    # config and kind of sampler (resuming, evaluating in between) reuse one compiled chunk.
+    train_step = make_train_step(model, cfg)
+
+    def body(state, arrays):
         key, batch_key = jax.random.split(state.key)
-        batch = sample_batch(batch_key)
+        batch = split.rebuild(arrays)(batch_key)
         if mesh is not None:
             batch = jax.lax.with_sharding_constraint(batch, sharding_lib.leading_sharding(mesh))
-        state, metrics = train_step(state.replace(key=key), batch)
-        return state, metrics
+        return train_step(state.replace(key=key), batch)
 
     if mesh is None:
         return repeat_steps(body, num_steps)
@@ -183,9 +197,37 @@ def make_train(model, cfg: TrainConfig, sample_batch: Callable, num_steps: int, 
     return repeat_steps(body, num_steps, in_shardings=replicated, out_shardings=replicated)
 
 
+@dataclasses.dataclass(frozen=True)
+class ArraySplit:
+    """A pytree's structure and non-array leaves (hashable), apart from its arrays.
+
+    Why: a jitted function that *closes over* arrays compiles them into its program as constants.  For a
+    training sampler that is the whole dataset, and XLA then spends minutes on it: one training step over
+    the halls' 60k frames (2 GiB) took 116 s to compile as a closure and 9 s with the frames passed as an
+    argument.  ``ArraySplit.of(tree)`` returns the arrays (to pass as arguments) and the rest (static);
+    ``rebuild(arrays)`` inside the jitted function puts the tree back together.
+    """
+
+    treedef: object
+    static_leaves: tuple  # the non-array leaves, None where an array goes
+
+    @classmethod
+    def of(cls, tree) -> tuple[list, "ArraySplit"]:
+        leaves, treedef = jax.tree.flatten(tree)
+        is_array = [isinstance(x, (jax.Array, np.ndarray)) for x in leaves]
+        arrays = [x for x, a in zip(leaves, is_array) if a]
+        return arrays, cls(treedef, tuple(None if a else x for x, a in zip(leaves, is_array)))
+
+    def rebuild(self, arrays):
+        it = iter(arrays)
+        leaves = [next(it) if x is None else x for x in self.static_leaves]
+        return jax.tree.unflatten(self.treedef, leaves)
+
+
 def repeat_steps(body: Callable, num_steps: int, **jit_kwargs) -> Callable:
-    """``run(state) -> (state, metrics stacked over steps)``: ``body(state, None) -> (state, metrics)``
-    applied ``num_steps`` times.
+    """``run(state, data=None) -> (state, metrics stacked over steps)``: ``body(state, data) -> (state,
+    metrics)`` applied ``num_steps`` times.  ``data`` (a pytree, e.g. a sampler's buffers from
+    ``ArraySplit.of``) is an argument of the compiled program, never a constant in it.
 
     On accelerators the steps run as one ``lax.scan`` under jit.  On CPU each step is one jitted call
     from a host loop instead: XLA:CPU runs convolution gradients inside a while loop about ten times
@@ -194,24 +236,19 @@ def repeat_steps(body: Callable, num_steps: int, **jit_kwargs) -> Callable:
     than a step.  Both paths give the same states and metrics.
     """
     if jax.default_backend() != "cpu":
-        return jax.jit(lambda state: jax.lax.scan(body, state, None, length=num_steps), **jit_kwargs)
-    step = jax.jit(lambda state: body(state, None), **jit_kwargs)
+        scanned = jax.jit(lambda state, data: jax.lax.scan(lambda s, _: body(s, data), state, None,
+                                                           length=num_steps), **jit_kwargs)
+        return lambda state, data=None: scanned(state, data)
+    step = jax.jit(body, **jit_kwargs)
 
-    def run(state):
+    def run(state, data=None):
         history = []
         for _ in range(num_steps):
-            state, metrics = step(state)
+            state, metrics = step(state, data)
             history.append(metrics)
         return state, jax.tree.map(lambda *xs: jnp.stack(xs), *history)
 
     return run
-
-
-@functools.lru_cache(maxsize=32)
-def _cached_train(model, cfg, sample_batch, length, mesh):
-    # Repeated ``fit`` calls with the same model, config and sampler (resuming, evaluating in between)
-    # reuse one compiled chunk instead of compiling a fresh closure each time.
-    return make_train(model, cfg, sample_batch, length, mesh=mesh)
 
 
 def fit(
@@ -269,7 +306,7 @@ def fit(
         while int(state.step) < num_steps:
             done = int(state.step)
             length = min(save_every - done % save_every, num_steps - done)  # end chunks on save points
-            new_state, metrics = _cached_train(model, cfg, sample_batch, length, mesh)(state)
+            new_state, metrics = make_train(model, cfg, sample_batch, length, mesh=mesh)(state)
             worst = int(jnp.max(metrics["consecutive_bad"]))
             if worst >= max_bad_steps:
                 raise NonFiniteTrainingError(

@@ -212,7 +212,7 @@ def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, 
     train_cfg = capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate)
     t = time.time()
     state, metrics = training.fit(
-        model, train_cfg, lambda key: sampler.sample(key, preset.batch_size), preset.train_steps,
+        model, train_cfg, sampler.batches(preset.batch_size), preset.train_steps,
         key=jax.random.key(cfg.train_seed + 1), ckpt_dir=str((data_dir / "checkpoints" / "caps").absolute()),
         save_every=preset.save_every, progress=cfg.progress)
     log(exp, f"caps: {int(state.step)} steps ({time.time() - t:.0f} s)")
@@ -224,7 +224,7 @@ def train_baseline(exp: Experiment, preset: Preset, kind: str, model_cfg, env, s
     train_cfg = capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate)
     t = time.time()
     state, _ = baselines.fit_offline(
-        agent, train_cfg, lambda key: sampler.sample(key, preset.batch_size), preset.baseline_steps,
+        agent, train_cfg, sampler.batches(preset.batch_size), preset.baseline_steps,
         key=jax.random.key(cfg.train_seed + 2), ckpt_dir=str((data_dir / "checkpoints" / kind).absolute()),
         save_every=preset.save_every)
     log(exp, f"{kind}: {int(state.step)} steps ({time.time() - t:.0f} s)")
@@ -399,7 +399,7 @@ def holdout_losses(model, params, ds, holdout_ids, preset: Preset, label_sources
                                     signals=tuple(s for s in needed if s not in label_sources))
     except ValueError as e:  # e.g. every held-out episode shorter than the horizon
         return {"error": str(e)}
-    batch = jax.jit(lambda k: sampler.sample(k, 256))(jax.random.key(7))
+    batch = jax.jit(lambda s, k: s.sample(k, 256))(sampler, jax.random.key(7))  # buffers as an argument
     _, m = jax.jit(lambda p, b: capsjax.total_loss(model, p, b))(params, batch)
     return {k: float(v) for k, v in m.items()}
 

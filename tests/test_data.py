@@ -334,3 +334,18 @@ def test_sigkill_mid_write_keeps_committed_episodes_and_resumes(tmp_path):
     ds = data.Dataset.open(path)
     assert ds.num_steps == before + 4 and ds.verify() == []
     np.testing.assert_array_equal(ds.read_episode(ds.num_episodes - 1)["vector"][:, 1], np.arange(before, before + 4))
+
+
+def test_batch_source_draws_what_sample_draws_and_is_a_pytree_of_the_buffers(tmp_path):
+    sampler = data.make_sampler(make_dataset(tmp_path / "d.zarr", [3, 9, 5]), horizon=2)
+    source = sampler.batches(16)
+    key = jax.random.key(3)
+    for got, want in zip(jax.tree.leaves(jax.jit(lambda s, k: s(k))(source, key)),
+                         jax.tree.leaves(SAMPLE(sampler, key, 16))):
+        np.testing.assert_array_equal(got, want)
+    # The buffers are leaves (so jitted training passes them as arguments), the batch size is static.
+    assert any(leaf is sampler.images for leaf in jax.tree.leaves(source))
+    assert jax.tree.structure(source) != jax.tree.structure(sampler.batches(8))
+    for bad in (0, -1, 2.0, True):
+        with pytest.raises(ValueError, match="batch_size"):
+            sampler.batches(bad)

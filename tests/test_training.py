@@ -1,7 +1,10 @@
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import struct
 
 import capsjax
 from capsjax import training
@@ -89,3 +92,46 @@ def test_learns_cues_of_actions_and_ranks_action_sequences():
     auc = np.mean(pos[:, None] > neg[None, :])
     print("auc", auc)
     assert auc > 0.85
+
+
+@struct.dataclass
+class StoredWindows:
+    """A pytree callable drawing batches from stored windows (as ``data.WindowSampler.batches`` does)."""
+
+    windows: capsjax.Batch
+    batch_size: int = struct.field(pytree_node=False)
+
+    def __call__(self, key):
+        idx = jax.random.randint(key, (self.batch_size,), 0, self.windows.actions.shape[0])
+        return jax.tree.map(lambda x: x[idx], self.windows)
+
+
+def test_array_split_keeps_structure_and_static_leaves_apart_from_arrays():
+    tree = {"a": jnp.arange(3), "b": (np.ones(2), "name", 7), "c": jnp.zeros(())}
+    arrays, split = training.ArraySplit.of(tree)
+    assert len(arrays) == 3 and hash(split) == hash(training.ArraySplit.of(tree)[1])
+    back = split.rebuild([x + 1 for x in arrays])
+    assert back["b"][1:] == ("name", 7)
+    np.testing.assert_array_equal(back["a"], [1, 2, 3])
+    np.testing.assert_array_equal(back["b"][0], [2.0, 2.0])
+
+
+def test_a_pytree_sampler_reaches_the_program_as_an_argument_not_a_constant():
+    # XLA compiles a closed-over dataset into the program as constants (minutes of compile for a real
+    # one): JAX warns past jax_captured_constants_warn_bytes, so a low threshold makes it visible here.
+    windows = random_windows(ENV, jax.random.key(1), TASK, 64, 6)
+    source = StoredWindows(windows, 8)
+    cfg = capsjax.TrainConfig(batch_size=8)
+    state = capsjax.init_train_state(MODEL, cfg, jax.random.key(2))
+    before = jax.config.jax_captured_constants_warn_bytes
+    jax.config.update("jax_captured_constants_warn_bytes", 10_000)
+    try:
+        with pytest.warns(UserWarning, match="constants were captured"):  # the closure: the check can fail
+            closed, _ = capsjax.make_train(MODEL, cfg, lambda key: source(key), 1)(state)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("error", message=".*constants were captured")
+            passed, _ = capsjax.make_train(MODEL, cfg, source, 1)(state)
+    finally:
+        jax.config.update("jax_captured_constants_warn_bytes", before)
+    for a, b in zip(jax.tree.leaves(closed.params), jax.tree.leaves(passed.params)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)  # the same step either way

@@ -366,19 +366,21 @@ def make_offline_train(agent: BaselineAgent, train_cfg: training.TrainConfig, sa
     (``training.repeat_steps``: one scan on accelerators, a host loop of jitted steps on CPU).
 
     ``sample_batch(key) -> losses.Batch`` (horizon >= 1, with ``done``/``next_obs``/``context``), e.g.
-    ``lambda k: sampler.sample(k, 32)`` of ``capsjax.data.make_sampler``.  The target is copied every
-    ``config.target_every`` gradient steps."""
+    ``sampler.batches(32)`` of ``capsjax.data.make_sampler`` (a pytree: its buffers reach the compiled
+    step as arguments, ``training.ArraySplit``).  The target is copied every ``config.target_every``
+    gradient steps."""
     if not isinstance(num_steps, int) or num_steps <= 0:
         raise ValueError(f"num_steps must be a positive int, got {num_steps!r}")
     step_fn = make_train_step(agent, train_cfg)
+    arrays, split = training.ArraySplit.of(sample_batch)
 
-    def body(state, _):
+    def body(state, arrays):
         key, k_batch, k_target = jax.random.split(state.key, 3)
-        tr = transitions_from_batch(agent, sample_batch(k_batch))
+        tr = transitions_from_batch(agent, split.rebuild(arrays)(k_batch))
         new, metrics = step_fn(state.replace(key=key), tr, k_target)
         return sync_target(new, state.step, new.step, agent.config.target_every), metrics
 
-    return training.repeat_steps(body, num_steps)
+    return functools.partial(training.repeat_steps(body, num_steps), data=arrays)
 
 
 def baseline_policy(agent: BaselineAgent, cem_cfg: planner.CEMConfig) -> mpc.Policy:
