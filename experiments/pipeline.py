@@ -247,19 +247,17 @@ def cem_config(preset: Preset, env, horizon: int) -> capsjax.CEMConfig:
 
 def evaluate(exp: Experiment, preset: Preset, env, method: Method, policy: mpc.Policy, params, spec: RewardSpec,
              tasks, seed: int, *, record_images: bool = False) -> mpc.Trajectory:
-    """Every eval task once, all robots in one jitted vmap (sharded over local devices)."""
+    """Every eval task once, all robots in one jitted vmap (sharded over local devices).
+
+    Params and reward spec are arguments of the compiled program (``sharding.run_episodes``), so methods
+    sharing one ``policy`` object -- every CAPs reward of an experiment -- share one compile."""
     n = preset.eval_episodes
     keys = jax.random.split(jax.random.key(2_000_000 + seed), n)
     if record_images:
         one = lambda task, key: mpc.run_episode(env, policy, params, spec, task, key, num_steps=preset.eval_steps,
                                                 update_spec=goal_heading_from_env, record_images=True)
         return jax.jit(one)(jax.tree.map(lambda x: x[0], tasks), keys[0])
-    devices = _largest_divisor(n, jax.local_device_count())
-    if devices == 1:
-        one = lambda task, key: mpc.run_episode(env, policy, params, spec, task, key, num_steps=preset.eval_steps,  # noqa: E731
-                                                update_spec=goal_heading_from_env)
-        return jax.jit(jax.vmap(one))(tasks, keys)
-    mesh = sharding.make_mesh(devices)
+    mesh = sharding.make_mesh(_largest_divisor(n, jax.local_device_count()))
     return sharding.run_episodes(env, policy, params, spec, tasks, keys, num_steps=preset.eval_steps, mesh=mesh,
                                  update_spec=goal_heading_from_env)
 
@@ -326,7 +324,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
 
     tasks = eval_tasks(env, preset, cfg.seed, cfg.split)
     cem = cem_config(preset, env, preset.horizon)
-    poses, per_episode = {}, {}
+    poses, per_episode, policies = {}, {}, {}
     for method in methods:
         t = time.time()
         cache = run_dir / "eval" / f"{method.name}.npz"
@@ -339,10 +337,10 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
             log(exp, f"eval {method.name}: reused {cache}")
             continue
         spec = method_spec(method, model)
-        if method.kind == "caps":
-            policy = mpc.caps_policy(model, cem)
-        else:
-            policy = baselines.baseline_policy(agents[method.kind], cem_config(preset, env, horizon=1))
+        if method.kind not in policies:  # one policy object per kind: its methods share one compiled program
+            policies[method.kind] = (mpc.caps_policy(model, cem) if method.kind == "caps" else
+                                     baselines.baseline_policy(agents[method.kind], cem_config(preset, env, horizon=1)))
+        policy = policies[method.kind]
         traj = jax.device_get(evaluate(exp, preset, env, method, policy, params[method.kind], spec, tasks, cfg.seed))
         poses[method.name] = np.asarray(traj.pose)
         per_episode[method.name] = {k: np.asarray(v) for k, v in exp.episode_metrics(traj, env).items()}
