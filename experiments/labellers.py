@@ -36,6 +36,7 @@ from capsjax import labellers
 from envs import base
 from envs.camera import render
 from envs.scene import DOOR, LANE_LINE, ROAD
+from experiments import runtime
 from experiments.bench import emit
 
 MAX_LABELLED_FRACTION = 0.01  # the bound: train on at most 1 % of the dataset's frames
@@ -245,4 +246,5 @@ def main(cfg: Config) -> dict:
 
 
 if __name__ == "__main__":
+    runtime.use_wide_vectors()  # as every entry point (experiments/runtime.py); XLA_FLAGS overrides
     main(tyro.cli(Config))
