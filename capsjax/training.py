@@ -302,11 +302,14 @@ def fit(
         import tqdm
 
         bar = tqdm.tqdm(total=num_steps, initial=int(state.step), unit="step")
+    trains = {}  # one per chunk length (at most three): with a mesh, the buffers are replicated once each
     try:
         while int(state.step) < num_steps:
             done = int(state.step)
             length = min(save_every - done % save_every, num_steps - done)  # end chunks on save points
-            new_state, metrics = make_train(model, cfg, sample_batch, length, mesh=mesh)(state)
+            if length not in trains:
+                trains[length] = make_train(model, cfg, sample_batch, length, mesh=mesh)
+            new_state, metrics = trains[length](state)
             worst = int(jnp.max(metrics["consecutive_bad"]))
             if worst >= max_bad_steps:
                 raise NonFiniteTrainingError(
