@@ -195,4 +195,8 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
+    # A program, like the experiments: 512-bit vectors on an AVX-512 host before JAX starts (renders faster).
+    from experiments import runtime
+
+    runtime.use_wide_vectors()
     main()

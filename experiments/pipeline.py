@@ -16,6 +16,7 @@ paths, goals), evaluation tasks from its disjoint 'eval' stream seeded by ``--se
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import time
 from collections.abc import Callable, Mapping
@@ -328,9 +329,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     for method in methods:
         t = time.time()
         cache = run_dir / "eval" / f"{method.name}.npz"
-        key = json.dumps({"method": dataclasses.asdict(method), "preset": dataclasses.asdict(preset),
-                          "data_dir": str(data_dir), **({"split": cfg.split} if cfg.split != "eval" else {})},
-                         sort_keys=True, default=str)
+        key = eval_cache_key(method, preset, data_dir, cfg.split, env, params[method.kind])
         cached = _load_eval(cache, key)
         if cached is not None:
             poses[method.name], per_episode[method.name] = cached
@@ -435,6 +434,20 @@ def episode_mean(traj, signal: str) -> np.ndarray:
     values, done = np.asarray(traj.signals[signal]), np.asarray(traj.done)
     active = np.concatenate([np.ones_like(done[:, :1]), ~done[:, :-1]], axis=1)
     return (values * active).sum(1) / np.maximum(active.sum(1), 1)
+
+
+def eval_cache_key(method: Method, preset: Preset, data_dir: Path, split: str, env, params) -> str:
+    """What a stored evaluation depends on: the method, the preset, the data folder, the split, the env's
+    config and the trained params themselves (a digest of their bytes), so a retrained model or a changed
+    world is evaluated again rather than read back.  Code changes are not in it: evaluate into a new
+    ``--out`` after changing the planner or the env's code."""
+    digest = hashlib.sha256()
+    for leaf in jax.tree.leaves(jax.device_get(params)):
+        digest.update(np.ascontiguousarray(leaf).tobytes())
+    return json.dumps({"method": dataclasses.asdict(method), "preset": dataclasses.asdict(preset),
+                       "data_dir": str(data_dir), "env": dataclasses.asdict(env.config),
+                       "params_sha256": digest.hexdigest(), "split": split},
+                      sort_keys=True, default=str)
 
 
 def _save_eval(path: Path, key: str, pose: np.ndarray, per_episode: dict) -> None:

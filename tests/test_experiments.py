@@ -5,6 +5,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -111,3 +112,21 @@ def test_command_line_help_explains_every_option():
                          check=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
     for option in ("--preset", "--seed", "--split", "--out", "--data-dir", "--train-seed", "--methods"):
         assert option in out.stdout, option
+
+
+def test_eval_cache_key_changes_with_params_env_and_split():
+    exp, preset = forest.EXPERIMENT, forest.PRESETS["ci"]
+    method = exp.methods[0]
+    params = {"w": np.arange(6, dtype=np.float32).reshape(2, 3)}
+    env = envs.make("forest")
+
+    def key(**changes):
+        args = dict(method=method, preset=preset, data_dir=Path("d"), split="eval", env=env, params=params)
+        return pipeline.eval_cache_key(**dict(args, **changes))
+
+    assert key() == key(params={"w": params["w"].copy()})  # the same bytes: reused
+    retrained = {"w": params["w"] + 1e-6}
+    assert key(params=retrained) != key()
+    assert key(env=envs.make("forest", arena_half=env.config.arena_half + 1.0)) != key()
+    assert key(split="val") != key()
+    assert key(method=dataclasses.replace(method, goal_speed=3.0)) != key()
