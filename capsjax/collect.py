@@ -64,15 +64,26 @@ def _uniform(key: jax.Array, spec) -> jax.Array:
 
 
 @functools.lru_cache(maxsize=16)
-def random_policy(spec) -> mpc.Policy:
-    """Uniform random actions from the env's plan box (``spec``: an ``envs.base.EnvSpec``).  Cached per
-    spec, so collections with equal specs share one compiled rollout."""
+def random_policy(spec, mean_hold: float = 1.0) -> mpc.Policy:
+    """Uniform random actions from the env's plan box (``spec``: an ``envs.base.EnvSpec``), each held for
+    a random number of steps with mean ``mean_hold`` (a fresh action is drawn with probability
+    ``1 / mean_hold`` each step).  ``mean_hold=1`` draws every step independently.  Why hold: a planner
+    scores sequences that keep turning or keep a speed for seconds, but independent draws average the
+    steering to zero within a few steps, so the data hold few sustained turns for the model to learn
+    from.  Cached per (spec, mean_hold), so collections with equal settings share one compiled rollout."""
+    if not mean_hold >= 1.0:
+        raise ValueError(f"random_policy: mean_hold must be >= 1 (steps each action is held), got {mean_hold}")
+    resample_probability = 1.0 / float(mean_hold)
 
-    def act(params, obs, reward_spec, policy_state, key):
+    def act(params, obs, reward_spec, held, key):
         del params, obs, reward_spec
-        return _uniform(key, spec), policy_state, {"value": jnp.zeros((), jnp.float32)}
+        fresh = _uniform(key, spec)  # the same draw as without holding, so mean_hold=1 is unchanged
+        draw = jnp.isnan(held[0]) | (jax.random.uniform(jax.random.fold_in(key, 1)) < resample_probability)
+        action = jnp.where(draw, fresh, held)
+        return action, action, {"value": jnp.zeros((), jnp.float32)}
 
-    return mpc.Policy(act=act, init_state=lambda: jnp.zeros((), jnp.int32))
+    # The held action; NaN until the first draw.
+    return mpc.Policy(act=act, init_state=lambda: jnp.full((len(spec.plan_low),), jnp.nan, jnp.float32))
 
 
 @struct.dataclass
@@ -287,8 +298,9 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
     ``spec`` is what the policy's ``act`` receives (a ``RewardSpec`` for CAPs; ignored by random
     policies).  Tasks come from ``task_sampler(key)`` (default ``env.sample_task(key, split)``), a new
     one for every episode.  ``episode_length`` caps episodes (``EpisodeWrapper``; None: only crashes and
-    task ends finish them).  An existing store at ``path`` is appended to, never overwritten, after
-    checking that it was recorded in the same env.  Episodes still running when the target is reached
+    task ends finish them).  An existing store at ``path`` is appended to (or, when it holds enough
+    steps already, reused), never overwritten, after checking that it was recorded in the same env by
+    a policy of the same ``policy_name``.  Episodes still running when the target is reached
     are dropped (only complete episodes are stored).  ``max_resets_per_step``: see ``make_chunk_fn``.
 
     ``mesh`` (e.g. ``sharding.make_mesh()``): the robots are split over its devices (the fleet's robot
@@ -322,10 +334,10 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
     if os.path.exists(path):
         ds = Dataset.open(path, "a")
         for field, have, want in (("env_name", ds.env_name, env_name), ("spec", _jsonable(ds.spec), _jsonable(env.spec)),
-                                  ("env_config", ds.env_config, env_config)):
+                                  ("env_config", ds.env_config, env_config), ("policy", ds.policy, _jsonable(policy_name))):
             if have != want:
                 raise ValueError(f"the dataset at {path!r} has {field} {have!r}; this collection has {want!r} "
-                                 f"(expected the same {field} to append)")
+                                 f"(a stored dataset is appended to or reused only with the same {field}; collect into another path)")
     else:
         ds = Dataset.create(path, env_name=env_name, env_config=env_config, spec=env.spec,
                             policy=_jsonable(policy_name), chunk_steps=chunk_steps,

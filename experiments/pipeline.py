@@ -61,6 +61,7 @@ class Preset:
     image_pool: int = 1  # ModelConfig.image_pool: average-pool frames before the CNN (a CPU-budget knob)
     mirror: bool = False  # mirror half of the training windows left-right (data.make_sampler(mirror=True))
     cem_return: str = "best"  # CEMConfig.return_mode of every method's planner: the paper's 'best' or 'mean'
+    collect_hold: float = 1.0  # collect.random_policy(mean_hold=...): mean steps each random action is held
 
 
 def ci_preset(**overrides) -> Preset:
@@ -161,13 +162,19 @@ def collect_stage(exp: Experiment, preset: Preset, env, data_dir: Path, cfg: Run
     phase; every method then trains on this same stored dataset: the strict off-policy test)."""
     path = data_dir / "dataset.zarr"
     t = time.time()
-    ds = collect.collect(env, collect.random_policy(env.spec), None, None, path=str(path),
+    ds = collect.collect(env, collect.random_policy(env.spec, preset.collect_hold), None, None, path=str(path),
                          num_steps=preset.collect_steps, num_robots=preset.collect_robots,
                          key=jax.random.key(cfg.train_seed), labelled_fraction=preset.labelled_fraction,
-                         episode_length=preset.episode_length, policy_name="uniform random over the plan box",
+                         episode_length=preset.episode_length, policy_name=collect_policy_name(preset),
                          progress=cfg.progress)
     log(exp, f"dataset: {ds.num_episodes} episodes, {ds.num_steps} steps ({time.time() - t:.0f} s)")
     return ds
+
+
+def collect_policy_name(preset: Preset) -> str:
+    """The collection policy as stored in the dataset (a stored dataset is reused only by the same policy)."""
+    name = "uniform random over the plan box"
+    return name if preset.collect_hold == 1.0 else f"{name}, each action held {preset.collect_hold:g} steps on average"
 
 
 def label_stage(exp: Experiment, preset: Preset, env, ds: data.Dataset, data_dir: Path, train_ids, holdout_ids,

@@ -106,7 +106,7 @@ def test_collect_resumes_by_appending_and_refuses_another_env(dataset):
     before = dataset.read_episode(0)
     n0, e0 = dataset.num_steps, dataset.num_episodes
     ds = collect.collect(ENV, POLICY, None, None, path=dataset.path, num_steps=n0 + 150, key=jax.random.key(1),
-                         **KW)
+                         policy_name="uniform random", **KW)
     assert ds.num_steps >= n0 + 150 and ds.num_episodes > e0
     np.testing.assert_array_equal(ds.read_episode(0)["image"], before["image"])
     assert ds.verify() == []
@@ -196,3 +196,31 @@ def test_collection_killed_mid_write_resumes(tmp_path):
     ds = collect.collect(ENV, collect.random_policy(ENV.spec), None, None, path=path, num_steps=n + 100,
                          key=jax.random.key(6), **KW)
     assert ds.num_steps >= n + 100 and ds.verify() == []
+
+
+def test_held_random_actions_repeat_and_mean_hold_one_is_independent():
+    spec = ENV.spec
+    held, independent = collect.random_policy(spec, 4.0), collect.random_policy(spec)
+
+    def drive(policy, steps=400):
+        state, actions = policy.init_state(), []
+        for key in jax.random.split(jax.random.key(3), steps):
+            action, state, _ = policy.act(None, None, None, state, key)
+            actions.append(np.asarray(action))
+        return np.stack(actions)
+
+    a_held, a_free = drive(held), drive(independent)
+    low, high = np.asarray(spec.plan_low), np.asarray(spec.plan_high)
+    for a in (a_held, a_free):
+        assert np.all((a >= low) & (a <= high)) and np.all(np.isfinite(a))
+    repeats = lambda a: np.mean(np.all(a[1:] == a[:-1], axis=-1))  # noqa: E731
+    assert 0.6 < repeats(a_held) < 0.9  # a fresh draw with probability 1/4 per step
+    assert repeats(a_free) == 0.0
+    with pytest.raises(ValueError, match="mean_hold"):
+        collect.random_policy(spec, 0.5)
+
+
+def test_a_stored_dataset_is_not_reused_by_another_policy(dataset):
+    with pytest.raises(ValueError, match="policy"):
+        collect.collect(ENV, POLICY, None, None, path=dataset.path, num_steps=10, num_robots=4,
+                        key=jax.random.key(0), policy_name="someone else's policy")
