@@ -156,8 +156,11 @@ class Fleet:
 
 @functools.lru_cache(maxsize=16)
 def make_chunk_fn(env, policy: mpc.Policy, task_sampler: Callable, steps_per_chunk: int,
-                  max_resets: int | None = None) -> Callable:
+                  max_resets: int | None = None, update_spec: Callable | None = None) -> Callable:
     """``run(fleet, params, reward_spec, key) -> (fleet, Record[S, R])``: one jitted chunk of the fleet.
+
+    ``update_spec(state, spec) -> spec`` (as in ``mpc.run_episode``) gives each robot its own goals every
+    step from its state, e.g. the heading of its path; None: every robot acts on ``reward_spec`` as is.
 
     After a terminal entry a robot starts a fresh episode on a task drawn from its key.  Resetting
     costs a camera frame and a layout, so only up to ``max_resets`` robots (default an eighth of the
@@ -176,8 +179,12 @@ def make_chunk_fn(env, policy: mpc.Policy, task_sampler: Callable, steps_per_chu
         robots = state.done.shape[0]
         slots = min(robots, max_resets or max(1, -(-robots // 8)))
         k_act, k_task = jax.random.split(key)
-        actions, policy_state, _ = jax.vmap(policy.act, in_axes=(None, 0, None, 0, 0))(
-            params, state.obs, reward_spec, fleet.policy_state, jax.random.split(k_act, robots))
+        if update_spec is None:
+            specs, spec_axis = reward_spec, None
+        else:
+            specs, spec_axis = jax.vmap(update_spec, in_axes=(0, None))(state, reward_spec), 0
+        actions, policy_state, _ = jax.vmap(policy.act, in_axes=(None, 0, spec_axis, 0, 0))(
+            params, state.obs, specs, fleet.policy_state, jax.random.split(k_act, robots))
         record = Record(image=state.obs.images[:, -1], vector=state.obs.vector[:, -1], action=actions,
                         done=state.done, pose=state.info["pose"], signals=state.signals, task=fleet.task_key,
                         valid=~fleet.waiting)
@@ -291,7 +298,7 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
             key: jax.Array, labelled_fraction: float = 0.002, steps_per_chunk: int = 64, split: str = "train",
             task_sampler: Callable | None = None, episode_length: int | None = 200,
             policy_name: str | dict = "custom", chunk_steps: int = 1024, max_resets_per_step: int | None = None,
-            progress: bool = True, mesh: Mesh | None = None) -> Dataset:
+            progress: bool = True, mesh: Mesh | None = None, update_spec: Callable | None = None) -> Dataset:
     """Roll out ``num_robots`` robots under ``policy`` until the dataset at ``path`` holds ``num_steps``
     committed steps; returns the dataset (reopened read-only).
 
@@ -301,7 +308,8 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
     task ends finish them).  An existing store at ``path`` is appended to (or, when it holds enough
     steps already, reused), never overwritten, after checking that it was recorded in the same env by
     a policy of the same ``policy_name``.  Episodes still running when the target is reached
-    are dropped (only complete episodes are stored).  ``max_resets_per_step``: see ``make_chunk_fn``.
+    are dropped (only complete episodes are stored).  ``max_resets_per_step`` and ``update_spec`` (per-robot
+    goals from each robot's state, for a goal-following policy): see ``make_chunk_fn``.
 
     ``mesh`` (e.g. ``sharding.make_mesh()``): the robots are split over its devices (the fleet's robot
     axis sharded, ``params`` and ``spec`` replicated), so the same jitted chunk runs data-parallel;
@@ -360,7 +368,7 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
         # jit follows the arguments' shardings: robot-sharded fleet in, robot-sharded fleet and records out.
         fleet = sharding.shard_robots(fleet, mesh)
         params, spec, key = sharding.replicate((params, spec, key), mesh)
-    run = make_chunk_fn(env, policy, sampler, steps_per_chunk, max_resets_per_step)
+    run = make_chunk_fn(env, policy, sampler, steps_per_chunk, max_resets_per_step, update_spec)
     rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).astype(np.uint64))
     split_code = SPLITS.index(split)
     h, w, _ = env.spec.image_shape

@@ -224,3 +224,25 @@ def test_a_stored_dataset_is_not_reused_by_another_policy(dataset):
     with pytest.raises(ValueError, match="policy"):
         collect.collect(ENV, POLICY, None, None, path=dataset.path, num_steps=10, num_robots=4,
                         key=jax.random.key(0), policy_name="someone else's policy")
+
+
+def test_update_spec_gives_each_robot_goals_from_its_own_state(tmp_path):
+    # A policy that steers by its spec; the spec is refreshed per robot from the robot's heading, so every
+    # stored action must equal the function of the heading recorded at the same entry.
+    limit = float(ENV.spec.plan_high[0])
+
+    def act(params, obs, spec, state, key):
+        return jnp.stack([limit * jnp.tanh(spec), jnp.float32(ENV.spec.plan_high[1])]), state, {"value": spec}
+
+    policy = mpc.Policy(act=act, init_state=lambda: jnp.zeros(()))
+    update = lambda state, spec: spec + state.info["pose"][2]  # noqa: E731
+    ds = collect.collect(ENV, policy, None, jnp.float32(0.5), path=str(tmp_path / "u.zarr"), num_steps=200,
+                         key=jax.random.key(4), policy_name="steer by heading", update_spec=update, **KW)
+    steer, yaw = [], []
+    for i in range(ds.num_episodes):
+        ep = ds.read_episode(i)
+        steer.append(ep["action"][:-1, 0])  # the terminal entry's action is padding
+        yaw.append(ep["pose"][:-1, 2])
+    steer, yaw = np.concatenate(steer), np.concatenate(yaw)
+    np.testing.assert_allclose(steer, limit * np.tanh(0.5 + yaw), rtol=1e-5, atol=1e-4)
+    assert np.std(yaw) > 0.1  # the robots' headings (and so their goals) differ
