@@ -677,6 +677,37 @@ class BatchSource:
         return self.sampler.sample(key, self.batch_size)
 
 
+def concatenate_samplers(*samplers: WindowSampler) -> WindowSampler:
+    """One sampler over the episodes of several (e.g. a random-action dataset and an on-policy one
+    collected later in the same env): windows are drawn uniformly over all of their valid starts, so
+    each dataset is sampled in proportion to its size.  They must agree on the horizon, history, plan
+    box, signals and mirroring."""
+    if not samplers:
+        raise ValueError("concatenate_samplers needs at least one sampler")
+    first = samplers[0]
+    for i, s in enumerate(samplers[1:], 1):
+        for field in ("horizon", "history", "mirror"):
+            if getattr(s, field) != getattr(first, field):
+                raise ValueError(f"concatenate_samplers: sampler {i} has {field} {getattr(s, field)!r}, "
+                                 f"sampler 0 has {getattr(first, field)!r}; expected equal")
+        if sorted(s.signals) != sorted(first.signals):
+            raise ValueError(f"concatenate_samplers: sampler {i} has signals {sorted(s.signals)}, sampler 0 has "
+                             f"{sorted(first.signals)}; expected the same names")
+        for field in ("plan_low", "plan_high", "vector_sign", "action_sign"):
+            a, b = getattr(first, field), getattr(s, field)
+            if (a is None) != (b is None) or (a is not None and not np.array_equal(np.asarray(a), np.asarray(b))):
+                raise ValueError(f"concatenate_samplers: sampler {i} has {field} {b}, sampler 0 has {a}; expected equal")
+    offsets = np.cumsum([0] + [int(s.images.shape[0]) for s in samplers[:-1]])
+    if int(offsets[-1]) + int(samplers[-1].images.shape[0]) >= 2**31:
+        raise ValueError("the samplers hold more steps than the int32 index allows; pass fewer episodes")
+    cat = lambda field: jnp.concatenate([getattr(s, field) for s in samplers])
+    shifted = lambda field: jnp.concatenate([getattr(s, field) + jnp.int32(o) for s, o in zip(samplers, offsets)])
+    return first.replace(
+        images=cat("images"), vector=cat("vector"), action=cat("action"), pose=cat("pose"),
+        signals={k: jnp.concatenate([s.signals[k] for s in samplers]) for k in first.signals},
+        episode_start=shifted("episode_start"), episode_end=shifted("episode_end"), starts=shifted("starts"))
+
+
 # How a named vector entry, action or signal changes when the world is mirrored left-right (y -> -y,
 # so yaw -> -yaw and a left turn becomes a right one): kept (+1) or negated (-1).  Right-lane cues
 # (lane_seen, lane_diff) are deliberately absent: the mirror of right-hand traffic is left-hand traffic,

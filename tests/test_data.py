@@ -349,3 +349,33 @@ def test_batch_source_draws_what_sample_draws_and_is_a_pytree_of_the_buffers(tmp
     for bad in (0, -1, 2.0, True):
         with pytest.raises(ValueError, match="batch_size"):
             sampler.batches(bad)
+
+
+def test_concatenated_samplers_keep_each_datasets_windows_and_episode_bounds(tmp_path):
+    a = data.make_sampler(make_dataset(tmp_path / "a.zarr", [3, 9, 5]), horizon=2)
+    b = data.make_sampler(make_dataset(tmp_path / "b.zarr", [6, 4], crash=[True, False]), horizon=2)
+    both = data.concatenate_samplers(a, b)
+    assert both.num_windows == a.num_windows + b.num_windows
+    n_a = int(a.images.shape[0])
+    key = jax.random.key(0)
+    # A window of the second dataset, read through the concatenation, is the same window as before
+    # (history zero-padded at its own episode start, labels stopping at its own terminal entry).
+    for t_b in (0, 3, 5, 6, 8):
+        got = both.windows(jnp.asarray([n_a + t_b], jnp.int32), key)
+        want = b.windows(jnp.asarray([t_b], jnp.int32), key)
+        for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            np.testing.assert_array_equal(g, w)
+    for t_a in (0, 4, 15):
+        got, want = both.windows(jnp.asarray([t_a], jnp.int32), key), a.windows(jnp.asarray([t_a], jnp.int32), key)
+        for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            np.testing.assert_array_equal(g, w)
+    # Sampling is uniform over the valid starts of both (so each dataset in proportion to its windows).
+    np.testing.assert_array_equal(both.starts, np.concatenate([a.starts, np.asarray(b.starts) + n_a]))
+    assert SAMPLE(both, jax.random.key(1), 64).obs.images.shape[0] == 64
+    with pytest.raises(ValueError, match="horizon"):
+        data.concatenate_samplers(a, data.make_sampler(make_dataset(tmp_path / "c.zarr", [6, 4]), horizon=3))
+    with pytest.raises(ValueError, match="signals"):
+        data.concatenate_samplers(a, data.make_sampler(make_dataset(tmp_path / "d.zarr", [6, 4]), horizon=2,
+                                                       signals=("collision",)))
+    with pytest.raises(ValueError, match="at least one"):
+        data.concatenate_samplers()
