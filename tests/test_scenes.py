@@ -236,3 +236,21 @@ def test_halls_car_is_rc_sized_and_can_turn_inside_a_hallway():
     radius = wheelbase / math.tan(steer)
     assert 2 * car.half_length <= 0.6
     assert radius + car.radius <= cfg.corridor_width / 2
+
+
+def test_forest_tasks_starting_anywhere_keep_the_task_and_spread_over_the_arena():
+    env = envs.make("forest")
+    keys = jax.random.split(jax.random.key(5), 128)
+    anywhere = jax.vmap(env.sample_task_anywhere)(keys)
+    usual = jax.vmap(env.sample_task)(keys)
+    np.testing.assert_array_equal(anywhere.path, usual.path)  # the same layout seed and path ...
+    np.testing.assert_array_equal(anywhere.seed, usual.seed)
+    start = np.asarray(anywhere.start)  # ... but the start drawn over the whole arena, any yaw
+    room = env.config.arena_half - 1.5
+    assert np.all(np.abs(start[:, :2]) <= room + 1e-5)
+    assert np.abs(start[:, :2]).max() > 0.9 * room  # some start near the walls (the circles' starts never are)
+    assert np.ptp(start[:, 2]) > 5.0
+    states = jax.jit(jax.vmap(env.reset))(keys, anywhere)
+    assert not np.asarray(states.signals["collision"]).any()  # obstacles are cleared around every start
+    with pytest.raises(ValueError, match="wall_margin"):
+        env.sample_task_anywhere(keys[0], wall_margin=20.0)

@@ -91,6 +91,20 @@ class ForestEnv(common.SceneEnv):
         start = jnp.concatenate([path[0], heading[None]])
         return ForestTask(seed=jax.random.key_data(k_seed).astype(jnp.uint32), path=path, start=start)
 
+    def sample_task_anywhere(self, key: jax.Array, split: str = "train", wall_margin: float = 1.5) -> ForestTask:
+        """A task of ``split`` whose start pose is drawn uniformly over the arena (centre at least
+        ``wall_margin`` m from the walls, any yaw) instead of at the path's start.  For data collection:
+        episodes from the path starts never come near the walls, and the paper's forest resets put the
+        car at the arena's corners, 1.5 m from two walls (caps-algorithm.md 9.1)."""
+        task = self.sample_task(key, split)
+        k_xy, k_yaw = jax.random.split(jax.random.fold_in(key, 7))
+        room = self.config.arena_half - wall_margin
+        if not room > 0:
+            raise ValueError(f"wall_margin must be below arena_half={self.config.arena_half}, got {wall_margin}")
+        xy = jax.random.uniform(k_xy, (2,), minval=-room, maxval=room)
+        yaw = jax.random.uniform(k_yaw, (), minval=-jnp.pi, maxval=jnp.pi)
+        return task.replace(start=jnp.concatenate([xy, yaw[None]]).astype(jnp.float32))
+
     def layout(self, task: ForestTask) -> Scene:
         return forest_layout(self.config, task.seed, task.start)
 
