@@ -16,6 +16,7 @@ paths, goals), evaluation tasks from its disjoint 'eval' stream seeded by ``--se
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import time
@@ -62,6 +63,18 @@ class Preset:
     mirror: bool = False  # mirror half of the training windows left-right (data.make_sampler(mirror=True))
     cem_return: str = "best"  # CEMConfig.return_mode of every method's planner: the paper's 'best' or 'mean'
     collect_hold: float = 1.0  # collect.random_policy(mean_hold=...): mean steps each random action is held
+    # Where collection episodes start: 'task' (the training task's own start, e.g. on its path) or
+    # 'anywhere' (uniform over the arena, any yaw: the env's ``sample_task_anywhere``; forest only).
+    collect_start: str = "task"
+    # On-policy data (the paper's forest data were partly on-policy): after CAPs has trained on the random
+    # data, it drives ``onpolicy_steps`` more steps on *training* tasks (MPC on the experiment's first CAPs
+    # reward, a cheaper ``onpolicy_cem``, Gaussian noise ``onpolicy_noise[0]`` in normalised action units
+    # and a uniform action with probability ``onpolicy_noise[1]``), stored as a second dataset; CAPs then
+    # trains ``onpolicy_train_steps`` more steps and the baselines train from scratch, all on both datasets.
+    onpolicy_steps: int = 0
+    onpolicy_train_steps: int = 0
+    onpolicy_cem: tuple[int, int, int, int] = (256, 64, 2, 16)
+    onpolicy_noise: tuple[float, float] = (0.1, 0.1)
 
 
 def ci_preset(**overrides) -> Preset:
@@ -166,15 +179,61 @@ def collect_stage(exp: Experiment, preset: Preset, env, data_dir: Path, cfg: Run
                          num_steps=preset.collect_steps, num_robots=preset.collect_robots,
                          key=jax.random.key(cfg.train_seed), labelled_fraction=preset.labelled_fraction,
                          episode_length=preset.episode_length, policy_name=collect_policy_name(preset),
-                         progress=cfg.progress)
+                         progress=cfg.progress, task_sampler=collect_task_sampler(preset, env))
     log(exp, f"dataset: {ds.num_episodes} episodes, {ds.num_steps} steps ({time.time() - t:.0f} s)")
     return ds
+
+
+def onpolicy_stage(exp: Experiment, preset: Preset, env, model, params, data_dir: Path, cfg: RunConfig) -> data.Dataset:
+    """The first CAPs model drives training tasks with exploration noise (``Preset.onpolicy_*``); the
+    episodes go to ``onpolicy.zarr``.  The stored policy names the first model's params digest, so data
+    of another first model are never reused."""
+    method = next(m for m in exp.methods if m.kind == "caps")
+    cem = dataclasses.replace(cem_config(preset, env, preset.horizon), init_samples=preset.onpolicy_cem[0],
+                              samples=preset.onpolicy_cem[1], iterations=preset.onpolicy_cem[2],
+                              elites=preset.onpolicy_cem[3])
+    sigma, epsilon = preset.onpolicy_noise
+    schedule = collect.ExplorationSchedule(uniform_steps=0, sigma=((0, sigma),), epsilon=((0, epsilon),))
+    policy = collect.exploration_policy(mpc.caps_policy(model, cem), env.spec, schedule=schedule)
+    name = {"policy": "CAPs MPC with exploration noise", "reward": method.name, "weights": dict(method.weights),
+            "goal_speed": method.goal_speed, "cem": list(preset.onpolicy_cem), "sigma": sigma, "epsilon": epsilon,
+            "cem_return": preset.cem_return, "params_sha256": params_digest(params)}
+    t = time.time()
+    ds = collect.collect(env, policy, params, method_spec(method, model), path=str(data_dir / "onpolicy.zarr"),
+                         num_steps=preset.onpolicy_steps, num_robots=preset.collect_robots,
+                         key=jax.random.key(cfg.train_seed + 3), labelled_fraction=preset.labelled_fraction,
+                         episode_length=preset.episode_length, policy_name=name, progress=cfg.progress,
+                         update_spec=goal_heading_from_env)
+    log(exp, f"on-policy dataset: {ds.num_episodes} episodes, {ds.num_steps} steps ({time.time() - t:.0f} s)")
+    return ds
+
+
+def collect_task_sampler(preset: Preset, env):
+    """``key -> task`` of the random-action collection (None: the env's 'train' tasks as they are)."""
+    if preset.collect_start == "task":
+        return None
+    if preset.collect_start == "anywhere":
+        if not hasattr(env, "sample_task_anywhere"):
+            raise ValueError(f"collect_start='anywhere' needs an env with sample_task_anywhere; "
+                             f"{type(env).__name__} has none (use collect_start='task')")
+        return _anywhere_sampler(env)
+    raise ValueError(f"collect_start must be 'task' or 'anywhere', got {preset.collect_start!r}")
+
+
+@functools.lru_cache(maxsize=8)
+def _anywhere_sampler(env):
+    # Cached per env: a resumed collection reuses the compiled rollout.
+    return lambda key: env.sample_task_anywhere(key, "train")
 
 
 def collect_policy_name(preset: Preset) -> str:
     """The collection policy as stored in the dataset (a stored dataset is reused only by the same policy)."""
     name = "uniform random over the plan box"
-    return name if preset.collect_hold == 1.0 else f"{name}, each action held {preset.collect_hold:g} steps on average"
+    if preset.collect_hold != 1.0:
+        name = f"{name}, each action held {preset.collect_hold:g} steps on average"
+    if preset.collect_start != "task":
+        name = f"{name}, episodes starting {preset.collect_start} in the arena"
+    return name
 
 
 def label_stage(exp: Experiment, preset: Preset, env, ds: data.Dataset, data_dir: Path, train_ids, holdout_ids,
@@ -202,13 +261,17 @@ def label_stage(exp: Experiment, preset: Preset, env, ds: data.Dataset, data_dir
     _, images, semantic = ds.labelled_frames(holdout_ids)
     quality = labellers.evaluate_labeller(labeller, images, semantic) if len(images) else {}
     quality["holdout_frames"] = len(images)
-    names = ds.label_names
-    if "segmenter" not in names or ds.label_info("segmenter")["num_steps"] < ds.num_steps:
-        writable = data.Dataset.open(ds.path, "a")  # labels are written beside the (untouched) episodes
-        data.relabel(writable, labeller, "segmenter", meta={"labeller": str(path)}, scene=exp.env_name)
+    write_labels(exp, ds, labeller, path)
     log(exp, f"labeller: {json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in quality.items()})} "
              f"({time.time() - t:.0f} s)")
     return quality
+
+
+def write_labels(exp: Experiment, ds: data.Dataset, labeller, labeller_path: Path) -> None:
+    """The labeller's cue labels beside every episode of ``ds``, unless they are there already."""
+    if "segmenter" not in ds.label_names or ds.label_info("segmenter")["num_steps"] < ds.num_steps:
+        writable = data.Dataset.open(ds.path, "a")  # labels are written beside the (untouched) episodes
+        data.relabel(writable, labeller, "segmenter", meta={"labeller": str(labeller_path)}, scene=exp.env_name)
 
 
 def model_config(exp: Experiment, preset: Preset, env) -> capsjax.ModelConfig:
@@ -216,15 +279,19 @@ def model_config(exp: Experiment, preset: Preset, env) -> capsjax.ModelConfig:
                                              obs_hidden=preset.obs_hidden, image_pool=preset.image_pool)
 
 
-def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, cfg: RunConfig):
+def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, cfg: RunConfig, *,
+               num_steps: int | None = None, name: str = "caps", state=None):
+    """CAPs to ``num_steps`` (default the preset's) in ``checkpoints/<name>``, from ``state`` if given
+    (continued training) and resuming from the latest checkpoint there; returns the train state."""
     train_cfg = capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate)
     t = time.time()
     state, metrics = training.fit(
-        model, train_cfg, sampler.batches(preset.batch_size), preset.train_steps,
-        key=jax.random.key(cfg.train_seed + 1), ckpt_dir=str((data_dir / "checkpoints" / "caps").absolute()),
+        model, train_cfg, sampler.batches(preset.batch_size), num_steps or preset.train_steps,
+        key=jax.random.key(cfg.train_seed + 1), state=state,
+        ckpt_dir=str((data_dir / "checkpoints" / name).absolute()),
         save_every=preset.save_every, progress=cfg.progress)
-    log(exp, f"caps: {int(state.step)} steps ({time.time() - t:.0f} s)")
-    return state.params
+    log(exp, f"{name}: {int(state.step)} steps ({time.time() - t:.0f} s)")
+    return state
 
 
 def train_baseline(exp: Experiment, preset: Preset, kind: str, model_cfg, env, sampler, data_dir: Path, cfg: RunConfig):
@@ -319,9 +386,26 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     methods = [m for m in exp.methods if not cfg.methods or m.name in cfg.methods]
     params = {}
     t = time.time()
-    if any(m.kind == "caps" for m in methods):
-        params["caps"] = train_caps(exp, preset, model, sampler, data_dir, cfg)
+    if any(m.kind == "caps" for m in methods) or preset.onpolicy_steps:
+        caps_state = train_caps(exp, preset, model, sampler, data_dir, cfg)
+        params["caps"] = caps_state.params
     timings["train_caps_s"] = time.time() - t
+    if preset.onpolicy_steps:
+        t = time.time()
+        ds_on = onpolicy_stage(exp, preset, env, model, params["caps"], data_dir, cfg)
+        if exp.learned_cues:  # the same labeller labels the on-policy frames
+            write_labels(exp, ds_on, labellers.load_labeller(data_dir / "segmenter"), data_dir / "segmenter")
+            ds_on = data.Dataset.open(ds_on.path)
+        on_train, _ = ds_on.split_episodes(HOLDOUT_FRACTION, seed=cfg.train_seed)
+        sampler = data.concatenate_samplers(sampler, data.make_sampler(
+            ds_on, horizon=preset.horizon, episodes=on_train, label_sources=label_sources,
+            signals=tuple(s for s in needed if s not in label_sources), mirror=preset.mirror))
+        timings["collect_onpolicy_s"] = time.time() - t
+        t = time.time()
+        caps_state = train_caps(exp, preset, model, sampler, data_dir, cfg, name="caps_onpolicy", state=caps_state,
+                                num_steps=preset.train_steps + preset.onpolicy_train_steps)
+        params["caps"] = caps_state.params
+        timings["train_caps_onpolicy_s"] = time.time() - t
     agents = {}
     for kind in sorted({m.kind for m in methods} - {"caps"}):
         t = time.time()
@@ -448,13 +532,18 @@ def eval_cache_key(method: Method, preset: Preset, data_dir: Path, split: str, e
     config and the trained params themselves (a digest of their bytes), so a retrained model or a changed
     world is evaluated again rather than read back.  Code changes are not in it: evaluate into a new
     ``--out`` after changing the planner or the env's code."""
+    return json.dumps({"method": dataclasses.asdict(method), "preset": dataclasses.asdict(preset),
+                       "data_dir": str(data_dir), "env": dataclasses.asdict(env.config),
+                       "params_sha256": params_digest(params), "split": split},
+                      sort_keys=True, default=str)
+
+
+def params_digest(params) -> str:
+    """sha256 of a params pytree's bytes (what a cached evaluation or on-policy dataset was made by)."""
     digest = hashlib.sha256()
     for leaf in jax.tree.leaves(jax.device_get(params)):
         digest.update(np.ascontiguousarray(leaf).tobytes())
-    return json.dumps({"method": dataclasses.asdict(method), "preset": dataclasses.asdict(preset),
-                       "data_dir": str(data_dir), "env": dataclasses.asdict(env.config),
-                       "params_sha256": digest.hexdigest(), "split": split},
-                      sort_keys=True, default=str)
+    return digest.hexdigest()
 
 
 def _save_eval(path: Path, key: str, pose: np.ndarray, per_episode: dict) -> None:

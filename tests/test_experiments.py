@@ -130,3 +130,37 @@ def test_eval_cache_key_changes_with_params_env_and_split():
     assert key(env=envs.make("forest", arena_half=env.config.arena_half + 1.0)) != key()
     assert key(split="val") != key()
     assert key(method=dataclasses.replace(method, goal_speed=3.0)) != key()
+
+
+def test_collection_start_choice_is_checked_and_named_in_the_dataset():
+    preset = forest.PRESETS["ci"]
+    forest_env = envs.make("forest")
+    assert pipeline.collect_task_sampler(preset, forest_env) is None
+    anywhere = dataclasses.replace(preset, collect_start="anywhere")
+    sampler = pipeline.collect_task_sampler(anywhere, forest_env)
+    assert sampler is pipeline.collect_task_sampler(anywhere, forest_env)  # cached: one compiled rollout
+    assert pipeline.collect_policy_name(anywhere) != pipeline.collect_policy_name(preset)
+    with pytest.raises(ValueError, match="sample_task_anywhere"):
+        pipeline.collect_task_sampler(anywhere, envs.make("city"))
+    with pytest.raises(ValueError, match="collect_start"):
+        pipeline.collect_task_sampler(dataclasses.replace(preset, collect_start="corner"), forest_env)
+
+
+@pytest.mark.slow
+def test_onpolicy_stage_collects_with_the_first_model_and_continues_training(tmp_path):
+    preset = dataclasses.replace(forest.PRESETS["ci"], onpolicy_steps=400, onpolicy_train_steps=50,
+                                 onpolicy_cem=(32, 16, 2, 4))
+    presets = dict(forest.PRESETS, ci=preset)
+    cfg = pipeline.RunConfig(preset="ci", out=tmp_path / "run", data_dir=tmp_path / "data", methods=("caps",),
+                             progress=False)
+    out = pipeline.run(forest.EXPERIMENT, presets, cfg)
+    from capsjax import data
+
+    ds_on = data.Dataset.open(str(tmp_path / "data" / "onpolicy.zarr"))
+    assert ds_on.num_steps >= 400 and ds_on.policy["policy"] == "CAPs MPC with exploration noise"
+    assert len(ds_on.policy["params_sha256"]) == 64  # names the first model it was collected with
+    steps = sorted(int(p.name) for p in (tmp_path / "data" / "checkpoints" / "caps_onpolicy").iterdir() if p.name.isdigit())
+    assert steps[-1] == preset.train_steps + preset.onpolicy_train_steps
+    again = pipeline.run(forest.EXPERIMENT, presets, cfg)  # resumes: nothing collected or trained again
+    assert again["timings_s"]["collect_onpolicy_s"] < out["timings_s"]["collect_onpolicy_s"]
+    assert data.Dataset.open(str(tmp_path / "data" / "onpolicy.zarr")).num_steps == ds_on.num_steps
