@@ -26,8 +26,10 @@ PRESETS = {
     # 10k).  The baselines keep 10k steps each: 20k (equal steps, measured once: README) takes the run to
     # ~34 minutes, over the `small` budget.  Also tried on 'val', and worse: twice the data (120k steps,
     # 56 %) and the paper's horizon H = 16 (38 %); a 4th CEM iteration (56 %), 16 elites (53 %), 512
-    # samples (47 %); random actions held 4 steps on average in collection (59 %).  The planner's own
-    # noise there: two other planner keys gave 59 % and 56 % (key 0: 66 %).
+    # samples (47 %); random actions held 4 steps on average in collection (59 %); over 64 'val' paths
+    # 20k steps of on-policy CAPs data plus 10k more CAPs steps (62.5 %, the preset 64 %), episodes
+    # starting anywhere in the arena (56 %), collision weight 200 or 50 instead of 500 (61 %, 55 %).
+    # The planner's own noise there: two other planner keys gave 59 % and 56 % (key 0: 66 %).
     "small": Preset(collect_steps=60_000, collect_robots=64, episode_length=200, train_steps=20_000,
                     baseline_steps=10_000, eval_episodes=32, eval_steps=120, cem=(1024, 256, 3, 32), horizon=12,
                     learning_rate=5e-4, save_every=1000, cem_return="mean"),
