@@ -269,7 +269,8 @@ def fit(
 ):
     """Train to ``num_steps`` total steps, resumably: ``(state, metrics)`` with the last chunk's metrics.
 
-    The start is, in order of precedence: the latest checkpoint in ``ckpt_dir`` (a resumed run), else
+    The start is, in order of precedence: the latest checkpoint in ``ckpt_dir`` (a resumed run; one past
+    ``num_steps`` is refused unless step ``num_steps`` itself is saved), else
     ``state``, else a fresh ``init_train_state(model, cfg, key)``.  Steps run in chunks of up to
     ``save_every`` under one jit (``make_train``); after each chunk the state is checked and, with a
     ``ckpt_dir``, saved (orbax keeps the last ``keep``).  The model and train configs (and ``metadata``)
@@ -293,8 +294,16 @@ def fit(
         manager = checkpoint.Checkpointer(ckpt_dir, save_every=save_every, keep=keep,
                                           config=checkpoint.training_config(model, cfg, metadata),
                                           defaults=checkpoint.training_defaults(model, cfg))
-        if manager.latest_step() is not None:
-            state, restored = manager.restore(state)
+        latest = manager.latest_step()
+        if latest is not None:
+            # A directory trained past ``num_steps`` (e.g. by a longer preset) must not silently hand back
+            # the longer run; its exact ``num_steps`` checkpoint is fine, otherwise refuse (and keep it).
+            if latest > num_steps and num_steps not in manager.all_steps():
+                raise ValueError(
+                    f"fit: ckpt_dir {ckpt_dir} holds checkpoints past num_steps={num_steps} (steps "
+                    f"{manager.all_steps()}) but not step {num_steps}; train into another ckpt_dir or ask "
+                    f"for num_steps>={latest}")
+            state, restored = manager.restore(state, step=min(latest, num_steps))
             log.info("resumed from step %d in %s", restored, ckpt_dir)
     metrics = {}
     bar = None

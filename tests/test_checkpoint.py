@@ -129,6 +129,22 @@ def test_killed_run_resumes_exactly(tmp_path, sample):
     _assert_trees_equal(fresh.params, state.params)
 
 
+def test_a_directory_trained_past_num_steps_is_refused_unless_that_step_is_saved(tmp_path, sample):
+    ckpt = tmp_path / "ckpt"
+    long, _ = training.fit(MODEL, CFG, sample, 3 * SAVE_EVERY, key=jax.random.key(2), ckpt_dir=ckpt,
+                           save_every=SAVE_EVERY, keep=2)  # keeps steps 8 and 12
+    before = _snapshot(ckpt)
+    # Step 8 is saved: that is the run of 8 steps, not the longer one.
+    shorter, _ = training.fit(MODEL, CFG, sample, 2 * SAVE_EVERY, ckpt_dir=ckpt, save_every=SAVE_EVERY, keep=2)
+    assert int(shorter.step) == 2 * SAVE_EVERY
+    longer = _flat(long.params)
+    assert any(not np.array_equal(x, longer[k]) for k, x in _flat(shorter.params).items())
+    # Step 4 was deleted (keep=2): refused by name, nothing on disk touched.
+    with pytest.raises(ValueError, match=r"past num_steps=4 \(steps \[8, 12\]\)"):
+        training.fit(MODEL, CFG, sample, SAVE_EVERY, ckpt_dir=ckpt, save_every=SAVE_EVERY, keep=2)
+    assert _snapshot(ckpt) == before
+
+
 def test_nan_steps_are_skipped_counted_and_stop_the_run(tmp_path, sample):
     ckpt = tmp_path / "ckpt"
     good, _ = training.fit(MODEL, CFG, sample, SAVE_EVERY, key=jax.random.key(2), ckpt_dir=ckpt,
