@@ -127,7 +127,8 @@ class Experiment:
 class RunConfig:
     preset: str = "small"
     """'ci' (a minute or two, used by the tests), 'small' (the default: a full result on a 2-core CPU)
-    or 'paper' (the paper's data sizes, horizon and CEM; meant for a GPU)."""
+    or 'paper' (the paper's data sizes, horizon and CEM; meant for a GPU); the city also has
+    'small_onpolicy' (`small` plus the on-policy stage, ~10 minutes longer)."""
     seed: int = 0
     """Evaluation seed: the evaluated tasks (layouts, paths, goals) come from this seed's stream of ``--split``."""
     split: Literal["eval", "val"] = "eval"

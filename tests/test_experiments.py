@@ -58,7 +58,7 @@ def test_every_experiment_names_the_issue_metrics():
         assert metrics <= {c[0] for c in exp.columns}
         assert {"caps", "gc_dql"} & {m.kind for m in exp.methods}
         assert any(m.novel for m in exp.methods), f"{exp.name} needs a reward beyond the paper (Q1)"
-        assert set(module.PRESETS) == {"ci", "small", "paper"}
+        assert {"ci", "small", "paper"} <= set(module.PRESETS)
 
 
 @pytest.mark.slow
