@@ -11,6 +11,8 @@ paper (Q1): the same CAPs model drives to the goals at 4 m/s.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from capsjax import baselines, cues
@@ -18,22 +20,22 @@ from experiments import labellers as labeller_experiment
 from experiments import pipeline
 from experiments.pipeline import Method, Preset
 
+# Chosen on the 'val' split (never 'eval'): the planner returning the elite mean (15 goals: reached 53 %,
+# the best sample 33 %) and CAPs 24k steps (30 goals: 6k 57 %, 12k 63 %, 24k 70 %).  The baselines keep
+# 3k steps each (~40 ms a step here: more would break the 30-minute budget).
+SMALL = Preset(collect_steps=60_000, collect_robots=64, episode_length=200, train_steps=24_000,
+               baseline_steps=3000, eval_episodes=15, eval_steps=120, cem=(1024, 256, 3, 32), horizon=12,
+               learning_rate=5e-4, labelled_fraction=0.005, segmenter_steps=600, save_every=1000,
+               cem_return="mean")
+
 PRESETS = {
     "ci": pipeline.ci_preset(),
-    # Chosen on the 'val' split (never 'eval'): the planner returning the elite mean (15 goals: reached 53 %,
-    # the best sample 33 %) and CAPs 24k steps (30 goals: 6k 57 %, 12k 63 %, 24k 70 %).  The baselines keep
-    # 3k steps each (~40 ms a step here: more would break the 30-minute budget).
-    "small": Preset(collect_steps=60_000, collect_robots=64, episode_length=200, train_steps=24_000,
-                    baseline_steps=3000, eval_episodes=15, eval_steps=120, cem=(1024, 256, 3, 32), horizon=12,
-                    learning_rate=5e-4, labelled_fraction=0.005, segmenter_steps=600, save_every=1000,
-                    cem_return="mean"),
+    "small": SMALL,
     # `small` plus the on-policy stage (chosen on 'val', README): random actions rarely reach 7 m/s, so 16k
     # CAPs steps on them, 16k steps driven by that model on training goals, then 8k more on both datasets.
     # ~10 minutes longer than `small`, hence a preset of its own rather than the 30-minute default.
-    "small_onpolicy": Preset(collect_steps=60_000, collect_robots=64, episode_length=200, train_steps=16_000,
-                             baseline_steps=3000, eval_episodes=15, eval_steps=120, cem=(1024, 256, 3, 32),
-                             horizon=12, learning_rate=5e-4, labelled_fraction=0.005, segmenter_steps=600,
-                             save_every=1000, cem_return="mean", onpolicy_steps=16_000, onpolicy_train_steps=8_000),
+    "small_onpolicy": dataclasses.replace(SMALL, train_steps=16_000, onpolicy_steps=16_000,
+                                          onpolicy_train_steps=8_000),
     "paper": Preset(collect_steps=800_000, collect_robots=256, episode_length=400, train_steps=360_000,
                     baseline_steps=360_000, eval_episodes=15, eval_steps=240, cem=(4096, 1024, 4, 128), horizon=12,
                     labelled_fraction=0.002, segmenter_steps=5000, save_every=10_000),
