@@ -77,12 +77,15 @@ def training_defaults(model, train_config, extra: dict | None = None) -> dict:
 
 
 def with_defaults(saved: dict, defaults: dict | None) -> dict:
-    """``saved`` with each section's absent fields set to their defaults (see ``training_defaults``)."""
+    """``saved`` with each section's absent fields set to their defaults (see ``training_defaults``); a
+    whole section absent (written before that section existed) counts as all its defaults."""
     if not defaults:
         return saved
     out = dict(saved)
     for section, fields in defaults.items():
-        if isinstance(out.get(section), dict):
+        if section not in out:
+            out[section] = dict(fields)
+        elif isinstance(out[section], dict):
             out[section] = {**fields, **out[section]}
     return out
 

@@ -273,8 +273,10 @@ def fit(
     ``num_steps`` is refused unless step ``num_steps`` itself is saved), else
     ``state``, else a fresh ``init_train_state(model, cfg, key)``.  Steps run in chunks of up to
     ``save_every`` under one jit (``make_train``); after each chunk the state is checked and, with a
-    ``ckpt_dir``, saved (orbax keeps the last ``keep``).  The model and train configs (and ``metadata``)
-    are saved beside each checkpoint and a checkpoint of another config is refused.
+    ``ckpt_dir``, saved (orbax keeps the last ``keep``).  The model and train configs (and ``metadata``,
+    e.g. how the training windows were drawn) are saved beside each checkpoint and a checkpoint of
+    another config is refused; a dataclass section of ``metadata`` missing from an older checkpoint counts
+    as its defaults (``checkpoint.training_defaults``).
 
     Raises ``NonFiniteTrainingError`` once ``max_bad_steps`` steps in a row had a non-finite loss or
     gradient; the state of that chunk is not saved, so the last good checkpoint stays the latest.
@@ -293,7 +295,7 @@ def fit(
     if ckpt_dir is not None:
         manager = checkpoint.Checkpointer(ckpt_dir, save_every=save_every, keep=keep,
                                           config=checkpoint.training_config(model, cfg, metadata),
-                                          defaults=checkpoint.training_defaults(model, cfg))
+                                          defaults=checkpoint.training_defaults(model, cfg, metadata))
         latest = manager.latest_step()
         if latest is not None:
             # A directory trained past ``num_steps`` (e.g. by a longer preset) must not silently hand back

@@ -2,7 +2,9 @@
 
 Data: uniform random driving in forest layouts whose tasks are *circular* paths (the training task
 stream).  Every method trains on this one stored dataset (the strict off-policy test, Q2).  Evaluation:
-follow *sinusoidal* paths in layouts from the disjoint evaluation stream.  Metrics (the paper's table):
+follow *sinusoidal* paths in layouts from the disjoint evaluation stream.  Every preset trains on half
+of its windows mirrored left-right (``Preset.mirror``: the forest has no handedness, so a mirrored window
+is as real as the original; it lowered the held-out collision loss by a quarter).  Metrics (the paper's table):
 ``success_rate`` (finished the path without a collision) and ``path_distance_mean`` (mean distance
 from the path, m).  CAPs drives with the paper's forest reward ``500 (1 - c) + cos(h - h_goal) - 1``;
 GC-DQL and GC-DQL-sep with the paper's baseline reward (its speed goal 2 m/s).  Beyond the paper
@@ -19,7 +21,7 @@ from experiments import pipeline
 from experiments.pipeline import Method, Preset
 
 PRESETS = {
-    "ci": pipeline.ci_preset(),
+    "ci": pipeline.ci_preset(mirror=True, cem_return="mean"),  # exercises the small preset's knobs
     # 32 evaluation paths (16 left 95 % intervals of +-20 points on success).  Chosen on the 'val' split
     # (32 paths, never 'eval'): CAPs 20k steps (10k: 56 % success there, 20k: 66 %, 30k: 69 %, too
     # little for its 4 minutes) and the planner returning the elite mean (the best sample: 47 %, both at
@@ -30,12 +32,17 @@ PRESETS = {
     # 20k steps of on-policy CAPs data plus 10k more CAPs steps (62.5 %, the preset 64 %), episodes
     # starting anywhere in the arena (56 %), collision weight 200 or 50 instead of 500 (61 %, 55 %).
     # The planner's own noise there: two other planner keys gave 59 % and 56 % (key 0: 66 %).
+    # Half of the training windows mirrored left-right (``mirror``; the forest has no handedness), chosen
+    # on 64 'val' paths on one host (2026-12-04): success 45 % -> 55 %, held-out collision loss 0.141 ->
+    # 0.105, at no cost in time.  The same settings without mirroring gave 64 % on 'val' on the host of
+    # 2026-12-02: hosts differ by as much as settings do, so compare only runs of one host.  Measured
+    # afterwards on 'eval' (README): 48 % mirrored vs 58 % unmirrored, 52 % each over 'val' and 'eval'.
     "small": Preset(collect_steps=60_000, collect_robots=64, episode_length=200, train_steps=20_000,
                     baseline_steps=10_000, eval_episodes=32, eval_steps=120, cem=(1024, 256, 3, 32), horizon=12,
-                    learning_rate=5e-4, save_every=1000, cem_return="mean"),
+                    learning_rate=5e-4, save_every=1000, cem_return="mean", mirror=True),
     "paper": Preset(collect_steps=800_000, collect_robots=256, episode_length=400, train_steps=360_000,
                     baseline_steps=360_000, eval_episodes=48, eval_steps=160, cem=(4096, 1024, 4, 128), horizon=16,
-                    save_every=10_000),
+                    save_every=10_000, mirror=True),
 }
 
 BASELINE_REWARD = dict(weights={"collision": 500.0, "heading_cos": 1.0, "speed_sq": 1.0}, goal_speed=2.0)

@@ -15,6 +15,7 @@ paths, goals), evaluation tasks from its disjoint 'eval' stream seeded by ``--se
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -31,7 +32,7 @@ import tyro
 
 import capsjax
 import envs
-from capsjax import baselines, collect, data, labellers, mpc, sharding, training
+from capsjax import baselines, checkpoint, collect, data, labellers, mpc, sharding, training
 from capsjax.reward import RewardSpec
 from experiments import report, runtime
 
@@ -75,6 +76,32 @@ class Preset:
     onpolicy_train_steps: int = 0
     onpolicy_cem: tuple[int, int, int, int] = (256, 64, 2, 16)
     onpolicy_noise: tuple[float, float] = (0.1, 0.1)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainingWindows:
+    """How a run's training windows are drawn beyond what the dataset and the model config record, saved
+    beside every CAPs and baseline checkpoint (``metadata`` of ``training.fit`` / ``fit_offline``): a
+    checkpoint folder trained on other windows (say before a preset turned ``mirror`` on) is refused,
+    never resumed as if it were this preset's model.  Checkpoints older than this section read as its
+    defaults."""
+
+    mirror: bool = False
+
+
+def training_metadata(preset: Preset) -> dict:
+    return {"TrainingWindows": TrainingWindows(mirror=preset.mirror)}
+
+
+@contextlib.contextmanager
+def _advice_on_mismatch(ckpt_dir: Path):
+    """A refused checkpoint folder names what to do (nothing in it is deleted)."""
+    try:
+        yield
+    except checkpoint.ConfigMismatchError as e:
+        raise checkpoint.ConfigMismatchError(
+            f"{e}. The checkpoints in {ckpt_dir} were trained with other settings: train into another "
+            f"--data-dir, or move that folder away to retrain (it is left as it is)") from e
 
 
 def ci_preset(**overrides) -> Preset:
@@ -285,12 +312,13 @@ def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, 
     """CAPs to ``num_steps`` (default the preset's) in ``checkpoints/<name>``, from ``state`` if given
     (continued training) and resuming from the latest checkpoint there; returns the train state."""
     train_cfg = capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate)
+    ckpt_dir = data_dir / "checkpoints" / name
     t = time.time()
-    state, metrics = training.fit(
-        model, train_cfg, sampler.batches(preset.batch_size), num_steps or preset.train_steps,
-        key=jax.random.key(cfg.train_seed + 1), state=state,
-        ckpt_dir=str((data_dir / "checkpoints" / name).absolute()),
-        save_every=preset.save_every, progress=cfg.progress)
+    with _advice_on_mismatch(ckpt_dir):
+        state, metrics = training.fit(
+            model, train_cfg, sampler.batches(preset.batch_size), num_steps or preset.train_steps,
+            key=jax.random.key(cfg.train_seed + 1), state=state, ckpt_dir=str(ckpt_dir.absolute()),
+            save_every=preset.save_every, progress=cfg.progress, metadata=training_metadata(preset))
     log(exp, f"{name}: {int(state.step)} steps ({time.time() - t:.0f} s)")
     return state
 
@@ -298,11 +326,13 @@ def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, 
 def train_baseline(exp: Experiment, preset: Preset, kind: str, model_cfg, env, sampler, data_dir: Path, cfg: RunConfig):
     agent = baselines.BaselineAgent.create(model_cfg, exp.baseline_config(kind), env.spec.plan_low, env.spec.plan_high)
     train_cfg = capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate)
+    ckpt_dir = data_dir / "checkpoints" / kind
     t = time.time()
-    state, _ = baselines.fit_offline(
-        agent, train_cfg, sampler.batches(preset.batch_size), preset.baseline_steps,
-        key=jax.random.key(cfg.train_seed + 2), ckpt_dir=str((data_dir / "checkpoints" / kind).absolute()),
-        save_every=preset.save_every)
+    with _advice_on_mismatch(ckpt_dir):
+        state, _ = baselines.fit_offline(
+            agent, train_cfg, sampler.batches(preset.batch_size), preset.baseline_steps,
+            key=jax.random.key(cfg.train_seed + 2), ckpt_dir=str(ckpt_dir.absolute()),
+            save_every=preset.save_every, metadata=training_metadata(preset))
     log(exp, f"{kind}: {int(state.step)} steps ({time.time() - t:.0f} s)")
     return agent, state.params
 

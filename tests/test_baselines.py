@@ -261,6 +261,13 @@ def test_checkpoint_round_trip_and_config_check(goal_training, tmp_path):
     with bl.checkpointer(other, GOAL_TRAIN_CFG, tmp_path / "ckpt") as ckpt:
         with pytest.raises(capsjax.checkpoint.ConfigMismatchError, match="gamma"):
             ckpt.restore(state)
+    # Metadata (how the training windows were drawn) is saved and checked like the configs.
+    with bl.checkpointer(GOAL_AGENT, GOAL_TRAIN_CFG, tmp_path / "meta", metadata={"windows": {"mirror": True}},
+                         async_save=False) as ckpt:
+        ckpt.save(int(state.step), state, force=True)
+    with bl.checkpointer(GOAL_AGENT, GOAL_TRAIN_CFG, tmp_path / "meta", metadata={"windows": {"mirror": False}}) as ckpt:
+        with pytest.raises(capsjax.checkpoint.ConfigMismatchError, match=r"windows\.mirror: saved true != requested false"):
+            ckpt.restore(state)
 
 
 # ------------------------------------------------------------------------------------------ slow

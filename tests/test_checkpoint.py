@@ -145,6 +145,27 @@ def test_a_directory_trained_past_num_steps_is_refused_unless_that_step_is_saved
     assert _snapshot(ckpt) == before
 
 
+@dataclasses.dataclass(frozen=True)
+class Windows:  # how the training windows were drawn, as a pipeline would pass it to fit's metadata
+    mirror: bool = False
+
+
+def test_fit_refuses_a_checkpoint_of_other_metadata_and_reads_an_older_one_as_the_defaults(tmp_path, sample):
+    ckpt = tmp_path / "ckpt"
+    first, _ = training.fit(MODEL, CFG, sample, SAVE_EVERY, key=jax.random.key(2), ckpt_dir=ckpt,
+                            save_every=SAVE_EVERY)  # written without metadata, as before it existed
+    before = _snapshot(ckpt)
+    # Asking for the metadata's defaults resumes it: the older run did draw its windows that way.
+    again, _ = training.fit(MODEL, CFG, sample, SAVE_EVERY, ckpt_dir=ckpt, save_every=SAVE_EVERY,
+                            metadata={"Windows": Windows()})
+    _assert_trees_equal(again.params, first.params)
+    # Other training data are refused by name; nothing on disk is touched.
+    with pytest.raises(checkpoint.ConfigMismatchError, match=r"Windows\.mirror: saved false != requested true"):
+        training.fit(MODEL, CFG, sample, 2 * SAVE_EVERY, ckpt_dir=ckpt, save_every=SAVE_EVERY,
+                     metadata={"Windows": Windows(mirror=True)})
+    assert _snapshot(ckpt) == before
+
+
 def test_nan_steps_are_skipped_counted_and_stop_the_run(tmp_path, sample):
     ckpt = tmp_path / "ckpt"
     good, _ = training.fit(MODEL, CFG, sample, SAVE_EVERY, key=jax.random.key(2), ckpt_dir=ckpt,

@@ -7,10 +7,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 
+import capsjax
 import envs
+from capsjax import checkpoint
+from envs.fast import FastEnv, FastTask, random_windows
 from experiments import city, forest, indoor, pipeline, report
 
 
@@ -164,3 +170,28 @@ def test_onpolicy_stage_collects_with_the_first_model_and_continues_training(tmp
     again = pipeline.run(forest.EXPERIMENT, presets, cfg)  # resumes: nothing collected or trained again
     assert again["timings_s"]["collect_onpolicy_s"] < out["timings_s"]["collect_onpolicy_s"]
     assert data.Dataset.open(str(tmp_path / "data" / "onpolicy.zarr")).num_steps == ds_on.num_steps
+
+
+def test_checkpoints_trained_on_other_windows_are_refused_not_resumed(tmp_path):
+    """A preset that turns ``mirror`` on must not resume the unmirrored model of an older run."""
+    env = FastEnv()
+    task = FastTask(obstacles=jnp.array([[5.5, 5.5, 0.01]] * 4), start=jnp.zeros(3))
+    model = capsjax.CAPsModel(capsjax.ModelConfig.from_env_spec(
+        env.spec, conv=((4, 3, 2),), obs_hidden=(16, 16), action_hidden=(8, 8), head_hidden=4, horizon=4))
+    windows = random_windows(env, jax.random.key(1), task, 32, model.horizon)
+
+    class Sampler:
+        def batches(self, batch_size):
+            return lambda key: jax.tree.map(lambda x: x[jax.random.randint(key, (batch_size,), 0, 32)], windows)
+
+    preset = dataclasses.replace(forest.PRESETS["ci"], mirror=False, train_steps=4, save_every=4, batch_size=8)
+    cfg = pipeline.RunConfig(preset="ci", progress=False)
+    first = pipeline.train_caps(forest.EXPERIMENT, preset, model, Sampler(), tmp_path, cfg)
+    again = pipeline.train_caps(forest.EXPERIMENT, preset, model, Sampler(), tmp_path, cfg)  # resumed as it is
+    assert int(again.step) == 4
+    np.testing.assert_array_equal(ravel_pytree(again.params)[0], ravel_pytree(first.params)[0])
+    mirrored = dataclasses.replace(preset, mirror=True)
+    with pytest.raises(checkpoint.ConfigMismatchError, match=r"TrainingWindows\.mirror: saved false != requested true"
+                                                              r".*another --data-dir"):
+        pipeline.train_caps(forest.EXPERIMENT, mirrored, model, Sampler(), tmp_path, cfg)
+    assert sorted(p.name for p in (tmp_path / "checkpoints" / "caps").iterdir() if p.name.isdigit()) == ["4"]

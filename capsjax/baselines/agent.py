@@ -407,24 +407,30 @@ def baseline_policy(agent: BaselineAgent, cem_cfg: planner.CEMConfig) -> mpc.Pol
 # ------------------------------------------------------------------------------------------ checkpoints
 
 
-def checkpointer(agent: BaselineAgent, train_cfg: training.TrainConfig, directory, **kwargs) -> checkpoint_lib.Checkpointer:
-    """The CAPs orbax helper with this baseline's configs saved beside every step (and checked on restore)."""
+def checkpointer(agent: BaselineAgent, train_cfg: training.TrainConfig, directory, *, metadata: dict | None = None,
+                 **kwargs) -> checkpoint_lib.Checkpointer:
+    """The CAPs orbax helper with this baseline's configs (and ``metadata``, as ``training.fit``'s) saved
+    beside every step and checked on restore."""
     config = checkpoint_lib.training_config(agent.model, train_cfg, {
-        "BaselineConfig": agent.config, "plan_low": agent.plan_low, "plan_high": agent.plan_high})
-    defaults = checkpoint_lib.training_defaults(agent.model, train_cfg, {"BaselineConfig": agent.config})
+        "BaselineConfig": agent.config, "plan_low": agent.plan_low, "plan_high": agent.plan_high, **(metadata or {})})
+    defaults = checkpoint_lib.training_defaults(agent.model, train_cfg,
+                                                {"BaselineConfig": agent.config, **(metadata or {})})
     return checkpoint_lib.Checkpointer(directory, config=config, defaults=defaults, **kwargs)
 
 
 def fit_offline(agent: BaselineAgent, train_cfg: training.TrainConfig, sample_batch: Callable, num_steps: int, *,
-                key=None, state: BaselineState | None = None, ckpt_dir=None, save_every: int = 1000, keep: int = 3):
+                key=None, state: BaselineState | None = None, ckpt_dir=None, save_every: int = 1000, keep: int = 3,
+                metadata: dict | None = None):
     """Offline training to ``num_steps`` gradient steps in jitted chunks of up to ``save_every``, saved
-    with orbax after each chunk and resumed from the latest checkpoint in ``ckpt_dir``."""
+    with orbax after each chunk and resumed from the latest checkpoint in ``ckpt_dir`` (refused if it was
+    written with other configs or ``metadata``, as in ``training.fit``)."""
     for name, value in (("num_steps", num_steps), ("save_every", save_every)):
         if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
             raise ValueError(f"fit_offline: {name} must be a positive int, got {value!r}")
     if state is None:
         state = init_state(agent, train_cfg, key if key is not None else jax.random.key(0))
-    manager = checkpointer(agent, train_cfg, ckpt_dir, save_every=save_every, keep=keep) if ckpt_dir else None
+    manager = (checkpointer(agent, train_cfg, ckpt_dir, metadata=metadata, save_every=save_every, keep=keep)
+               if ckpt_dir else None)
     trains, metrics = {}, {}
     try:
         if manager is not None and manager.latest_step() is not None:
