@@ -68,14 +68,15 @@ class Preset:
     # 'anywhere' (uniform over the arena, any yaw: the env's ``sample_task_anywhere``; forest only).
     collect_start: str = "task"
     # On-policy data (the paper's forest data were partly on-policy): after CAPs has trained on the random
-    # data, it drives ``onpolicy_steps`` more steps on *training* tasks (MPC on the experiment's first CAPs
-    # reward, a cheaper ``onpolicy_cem``, Gaussian noise ``onpolicy_noise[0]`` in normalised action units
+    # data, it drives ``onpolicy_steps`` more steps on *training* tasks (MPC on the CAPs method named
+    # ``onpolicy_reward``, or the experiment's first CAPs method when empty, a cheaper ``onpolicy_cem``, Gaussian noise ``onpolicy_noise[0]`` in normalised action units
     # and a uniform action with probability ``onpolicy_noise[1]``), stored as a second dataset; CAPs then
     # trains ``onpolicy_train_steps`` more steps and the baselines train from scratch, all on both datasets.
     onpolicy_steps: int = 0
     onpolicy_train_steps: int = 0
     onpolicy_cem: tuple[int, int, int, int] = (256, 64, 2, 16)
     onpolicy_noise: tuple[float, float] = (0.1, 0.1)
+    onpolicy_reward: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,7 +155,7 @@ class Experiment:
 class RunConfig:
     preset: str = "small"
     """'ci' (a minute or two, used by the tests), 'small' (the default: a full result on a 2-core CPU)
-    or 'paper' (the paper's data sizes, horizon and CEM; meant for a GPU); the city also has
+    or 'paper' (the paper's data sizes, horizon and CEM; meant for a GPU); the city and the halls also have
     'small_onpolicy' (`small` plus the on-policy stage, ~10 minutes longer)."""
     seed: int = 0
     """Evaluation seed: the evaluated tasks (layouts, paths, goals) come from this seed's stream of ``--split``."""
@@ -216,7 +217,7 @@ def onpolicy_stage(exp: Experiment, preset: Preset, env, model, params, data_dir
     """The first CAPs model drives training tasks with exploration noise (``Preset.onpolicy_*``); the
     episodes go to ``onpolicy.zarr``.  The stored policy names the first model's params digest, so data
     of another first model are never reused."""
-    method = next(m for m in exp.methods if m.kind == "caps")
+    method = onpolicy_method(exp, preset)
     cem = dataclasses.replace(cem_config(preset, env, preset.horizon), init_samples=preset.onpolicy_cem[0],
                               samples=preset.onpolicy_cem[1], iterations=preset.onpolicy_cem[2],
                               elites=preset.onpolicy_cem[3])
@@ -234,6 +235,18 @@ def onpolicy_stage(exp: Experiment, preset: Preset, env, model, params, data_dir
                          update_spec=goal_heading_from_env)
     log(exp, f"on-policy dataset: {ds.num_episodes} episodes, {ds.num_steps} steps ({time.time() - t:.0f} s)")
     return ds
+
+
+def onpolicy_method(exp: Experiment, preset: Preset) -> Method:
+    """The CAPs method whose reward drives the on-policy stage (``Preset.onpolicy_reward``)."""
+    caps_methods = [m for m in exp.methods if m.kind == "caps"]
+    if not preset.onpolicy_reward:
+        return caps_methods[0]
+    for m in caps_methods:
+        if m.name == preset.onpolicy_reward:
+            return m
+    raise ValueError(f"Preset.onpolicy_reward must name a CAPs method of {exp.name!r} "
+                     f"({', '.join(m.name for m in caps_methods)}), got {preset.onpolicy_reward!r}")
 
 
 def collect_task_sampler(preset: Preset, env):
@@ -390,6 +403,8 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         raise SystemExit(f"--methods names unknown method(s) {unknown}; this experiment has "
                          f"{[m.name for m in exp.methods]}")
     preset = presets[cfg.preset]
+    if preset.onpolicy_steps:
+        onpolicy_method(exp, preset)  # a bad onpolicy_reward fails now, not after collecting and training
     run_dir, data_dir = resolve_paths(exp, cfg)
     timings: dict[str, float] = {}
     env = envs.make(exp.env_name, **dict(exp.env_overrides))

@@ -152,6 +152,21 @@ def test_collection_start_choice_is_checked_and_named_in_the_dataset():
         pipeline.collect_task_sampler(dataclasses.replace(preset, collect_start="corner"), forest_env)
 
 
+def test_onpolicy_reward_names_the_caps_method_that_drives_and_rejects_others(tmp_path):
+    small = indoor.PRESETS["small"]
+    assert pipeline.onpolicy_method(indoor.EXPERIMENT, small).name == "caps_collision"  # default: the first
+    chosen = dataclasses.replace(small, onpolicy_reward="caps_heading")
+    assert pipeline.onpolicy_method(indoor.EXPERIMENT, chosen).weights == indoor.RC_CAR
+    for bad in ("dql", "caps_heading_typo"):  # a baseline drives no MPC; a typo names nothing
+        with pytest.raises(ValueError, match=r"onpolicy_reward.*caps_collision, caps_heading"):
+            pipeline.onpolicy_method(indoor.EXPERIMENT, dataclasses.replace(small, onpolicy_reward=bad))
+    typo = dataclasses.replace(indoor.PRESETS["ci"], onpolicy_steps=100, onpolicy_reward="caps_heading_typo")
+    cfg = pipeline.RunConfig(preset="ci", out=tmp_path / "run", data_dir=tmp_path / "data", progress=False)
+    with pytest.raises(ValueError, match="onpolicy_reward"):  # before anything is collected or written
+        pipeline.run(indoor.EXPERIMENT, {"ci": typo}, cfg)
+    assert not (tmp_path / "data").exists() and not (tmp_path / "run").exists()
+
+
 @pytest.mark.slow
 def test_onpolicy_stage_collects_with_the_first_model_and_continues_training(tmp_path):
     preset = dataclasses.replace(forest.PRESETS["ci"], onpolicy_steps=400, onpolicy_train_steps=50,
