@@ -115,6 +115,23 @@ def ci_preset(**overrides) -> Preset:
     return Preset(**dict(settings, **overrides))
 
 
+# The fields of a preset that set how much is done (data, steps, episodes), as opposed to what is done
+# (model, horizon, planner, training and collection settings).
+_SIZE_FIELDS = ("collect_steps", "collect_robots", "episode_length", "train_steps", "baseline_steps", "eval_episodes",
+                "eval_steps", "labelled_fraction", "segmenter_steps", "save_every")
+
+
+def smoke_preset(preset: Preset) -> Preset:
+    """``preset`` at the ``ci`` preset's sizes: its model, horizon, planner, training and collection
+    settings unchanged, but ci's data, step and episode counts (an on-policy stage kept, at ci sizes), so
+    every stage of a long run -- e.g. ``paper`` on a GPU -- is exercised in minutes before paying for it."""
+    ci = ci_preset()
+    sizes = {name: getattr(ci, name) for name in _SIZE_FIELDS}
+    if preset.onpolicy_steps:
+        sizes.update(onpolicy_steps=ci.collect_steps // 2, onpolicy_train_steps=ci.train_steps)
+    return dataclasses.replace(preset, **sizes)
+
+
 @dataclasses.dataclass(frozen=True)
 class Method:
     """A controller evaluated on the eval tasks: a trained model (``kind``) driven by a reward.
@@ -173,6 +190,10 @@ class RunConfig:
     """Evaluate only these methods (default: all of the experiment's)."""
     progress: bool = True
     """Progress bars for every long stage."""
+    smoke: bool = False
+    """Smoke test of the preset: its model, horizon, planner and training settings at the 'ci' preset's data
+    sizes and step counts, so every stage runs in minutes (check ``--preset paper`` before a long GPU run).
+    Default folders get ``_smoke`` after the preset name; the numbers mean nothing."""
 
 
 def cli(main: Callable[[RunConfig], dict], description: str) -> dict:
@@ -185,8 +206,9 @@ def cli(main: Callable[[RunConfig], dict], description: str) -> dict:
 
 def resolve_paths(exp: Experiment, cfg: RunConfig) -> tuple[Path, Path]:
     split = "" if cfg.split == "eval" else f"_{cfg.split}"
-    run_dir = cfg.out if cfg.out is not None else Path("results") / exp.name / f"{cfg.preset}{split}_seed{cfg.seed}"
-    data_dir = cfg.data_dir if cfg.data_dir is not None else Path("datasets") / exp.name / f"{cfg.preset}_train{cfg.train_seed}"
+    name = f"{cfg.preset}_smoke" if cfg.smoke else cfg.preset  # a smoke run never touches the real run's data
+    run_dir = cfg.out if cfg.out is not None else Path("results") / exp.name / f"{name}{split}_seed{cfg.seed}"
+    data_dir = cfg.data_dir if cfg.data_dir is not None else Path("datasets") / exp.name / f"{name}_train{cfg.train_seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
     data_dir.mkdir(parents=True, exist_ok=True)
     return run_dir, data_dir
@@ -402,7 +424,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     if unknown:
         raise SystemExit(f"--methods names unknown method(s) {unknown}; this experiment has "
                          f"{[m.name for m in exp.methods]}")
-    preset = presets[cfg.preset]
+    preset = smoke_preset(presets[cfg.preset]) if cfg.smoke else presets[cfg.preset]
     if preset.onpolicy_steps:
         onpolicy_method(exp, preset)  # a bad onpolicy_reward fails now, not after collecting and training
     run_dir, data_dir = resolve_paths(exp, cfg)

@@ -89,6 +89,38 @@ def test_ci_preset_runs_end_to_end_and_resumes(module, tmp_path):
     assert again["timings_s"]["collect_s"] < out["timings_s"]["collect_s"]
 
 
+def test_smoke_preset_keeps_what_is_run_and_shrinks_how_much(tmp_path, monkeypatch):
+    paper, ci = indoor.PRESETS["paper"], pipeline.ci_preset()
+    smoke = pipeline.smoke_preset(paper)
+    for name in ("cem", "horizon", "conv", "obs_hidden", "image_pool", "batch_size", "mirror", "cem_return"):
+        assert getattr(smoke, name) == getattr(paper, name), name
+    for name in ("collect_steps", "train_steps", "baseline_steps", "eval_episodes", "eval_steps", "segmenter_steps"):
+        assert getattr(smoke, name) == getattr(ci, name) < getattr(paper, name), name
+    assert smoke.onpolicy_steps == 0  # no on-policy stage where the preset has none
+    onpolicy = pipeline.smoke_preset(indoor.PRESETS["small_onpolicy"])
+    assert 0 < onpolicy.onpolicy_steps < indoor.PRESETS["small_onpolicy"].onpolicy_steps
+    assert onpolicy.onpolicy_reward == indoor.PRESETS["small_onpolicy"].onpolicy_reward
+    monkeypatch.chdir(tmp_path)  # resolve_paths creates the folders
+    run_dir, data_dir = pipeline.resolve_paths(forest.EXPERIMENT, pipeline.RunConfig(preset="paper", smoke=True))
+    assert "paper_smoke" in run_dir.name and "paper_smoke" in data_dir.name  # never the real run's folders
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("module", [forest, city, indoor], ids=lambda m: m.__name__.split(".")[-1])
+def test_paper_preset_runs_every_stage_at_smoke_size(module, tmp_path):
+    """The paper preset's model, horizon and CEM (meant for a GPU) through every stage, at ci's sizes."""
+    exp = module.EXPERIMENT
+    methods = tuple(m.name for m in exp.methods)
+    cfg = pipeline.RunConfig(preset="paper", smoke=True, out=tmp_path / "run", data_dir=tmp_path / "data",
+                             methods=methods, progress=False)
+    out = module.main(cfg)
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["preset"]["cem"] == list(module.PRESETS["paper"].cem)
+    assert config["preset"]["horizon"] == module.PRESETS["paper"].horizon
+    assert set(out["metrics"]) == set(methods)
+    assert np.isfinite(out["holdout_loss"]["loss"])
+
+
 def test_val_split_has_its_own_tasks_and_run_folder(tmp_path):
     env = envs.make("forest")
     preset = dataclasses.replace(forest.PRESETS["ci"], eval_episodes=3)
@@ -116,7 +148,7 @@ def test_every_method_plans_with_the_presets_return_mode():
 def test_command_line_help_explains_every_option():
     out = subprocess.run([sys.executable, "-m", "experiments.indoor", "--help"], capture_output=True, text=True,
                          check=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
-    for option in ("--preset", "--seed", "--split", "--out", "--data-dir", "--train-seed", "--methods"):
+    for option in ("--preset", "--seed", "--split", "--out", "--data-dir", "--train-seed", "--methods", "--smoke"):
         assert option in out.stdout, option
 
 
