@@ -231,6 +231,22 @@ class Checkpointer:
                 log.warning("%s; falling back to step %d", e, candidates[i + 1])
         raise AssertionError("unreachable")
 
+    def resume(self, target, num_steps: int, *, who: str = "fit"):
+        """``(state, step)`` to continue a run of ``num_steps`` steps from: ``target`` itself (step None)
+        when the directory is empty, else the latest checkpoint up to ``num_steps``.
+
+        A directory trained past ``num_steps`` (e.g. by a longer preset) must not silently hand back the
+        longer run: its exact ``num_steps`` checkpoint is used, otherwise this refuses (and keeps it)."""
+        latest = self.latest_step()
+        if latest is None:
+            return target, None
+        if latest > num_steps and num_steps not in self.all_steps():
+            raise ValueError(
+                f"{who}: ckpt_dir {self.directory} holds checkpoints past num_steps={num_steps} (steps "
+                f"{self.all_steps()}) but not step {num_steps}; train into another ckpt_dir or ask "
+                f"for num_steps>={latest}")
+        return self.restore(target, step=min(latest, num_steps))
+
     def _restore_step(self, abstract, step: int):
         path = self.step_path(step)
         if self.config is not None:

@@ -296,16 +296,8 @@ def fit(
         manager = checkpoint.Checkpointer(ckpt_dir, save_every=save_every, keep=keep,
                                           config=checkpoint.training_config(model, cfg, metadata),
                                           defaults=checkpoint.training_defaults(model, cfg, metadata))
-        latest = manager.latest_step()
-        if latest is not None:
-            # A directory trained past ``num_steps`` (e.g. by a longer preset) must not silently hand back
-            # the longer run; its exact ``num_steps`` checkpoint is fine, otherwise refuse (and keep it).
-            if latest > num_steps and num_steps not in manager.all_steps():
-                raise ValueError(
-                    f"fit: ckpt_dir {ckpt_dir} holds checkpoints past num_steps={num_steps} (steps "
-                    f"{manager.all_steps()}) but not step {num_steps}; train into another ckpt_dir or ask "
-                    f"for num_steps>={latest}")
-            state, restored = manager.restore(state, step=min(latest, num_steps))
+        state, restored = manager.resume(state, num_steps, who="fit")
+        if restored is not None:
             log.info("resumed from step %d in %s", restored, ckpt_dir)
     metrics = {}
     bar = None

@@ -70,6 +70,10 @@ def test_bad_config_is_refused_with_the_field_named():
         bl.BaselineConfig(reward_terms=(("collision", 1.0),))
     with pytest.raises(ValueError, match="no_bootstrap"):
         bl.BaselineConfig(kind="gc_dql", no_bootstrap=("speed",))
+    with pytest.raises(ValueError, match="reward_scaling must be a positive"):
+        bl.BaselineConfig(reward_scaling=0.0)
+    with pytest.raises(ValueError, match="reward_scaling must be 1.0 for gc_dql_sep"):
+        bl.BaselineConfig(kind="gc_dql_sep", reward_scaling=0.5)
     with pytest.raises(ValueError, match="plan_low"):
         bl.BaselineAgent.create(TRUNK, bl.BaselineConfig(), (0.0,), (1.0,))
     with pytest.raises(ValueError, match="horizon"):
@@ -111,6 +115,12 @@ def test_rewards_and_td_targets_on_a_hand_computed_example():
     r = bl.head_rewards(agent_of(cfg), tr)["q"]
     # (a) 2 * (-|1 - 2| / 2) + 4 * (-(pi/2) / pi) = -1 - 2 = -3; (b) the crash: -100.
     np.testing.assert_allclose(r, [-3.0, -100.0], rtol=1e-5)
+    # reward_scaling: the same reward in units of the crash penalty (the forest's and CARLA's variants).
+    scaled = bl.head_rewards(agent_of(dataclasses_replace(cfg, reward_scaling=0.01)), tr)["q"]
+    np.testing.assert_allclose(scaled, [-0.03, -1.0], rtol=1e-5)
+    for factory, penalty in ((bl.BaselineConfig.forest, 500.0), (bl.BaselineConfig.carla, 1000.0)):
+        assert factory("gc_dql").reward_scaling * penalty == factory("dql").reward_scaling * penalty == 1.0
+        assert factory("gc_dql_sep").reward_scaling == 1.0
     y = bl.td_targets({"q": r}, {"q": jnp.array([10.0, 50.0])}, tr.done, cfg.gamma)["q"]
     np.testing.assert_allclose(y, [-3.0 + 0.9 * 10.0, -100.0], rtol=1e-5)  # no bootstrap past the crash
 
@@ -268,6 +278,20 @@ def test_checkpoint_round_trip_and_config_check(goal_training, tmp_path):
     with bl.checkpointer(GOAL_AGENT, GOAL_TRAIN_CFG, tmp_path / "meta", metadata={"windows": {"mirror": False}}) as ckpt:
         with pytest.raises(capsjax.checkpoint.ConfigMismatchError, match=r"windows\.mirror: saved true != requested false"):
             ckpt.restore(state)
+
+
+def test_fit_offline_resumes_up_to_num_steps_and_refuses_a_longer_run(tmp_path):
+    # A shorter preset pointed at a longer run's directory must get its own step, never the longer run.
+    sample = lambda key: fast_transitions(key, GOAL_TRAIN_CFG.batch_size, yaw=0.0)
+    fit = functools.partial(bl.fit_offline, GOAL_AGENT, GOAL_TRAIN_CFG, sample, key=jax.random.key(0),
+                            ckpt_dir=tmp_path / "ckpt", save_every=2, keep=2)
+    longer, _ = fit(6)  # keeps steps 4 and 6
+    shorter, _ = fit(4)
+    assert int(shorter.step) == 4 and not _same(shorter.params, longer.params)
+    with pytest.raises(ValueError, match=r"fit_offline: .* past num_steps=2 \(steps \[4, 6\]\)"):
+        fit(2)
+    again, _ = fit(6)
+    assert int(again.step) == 6 and _same(again.params, longer.params)
 
 
 # ------------------------------------------------------------------------------------------ slow

@@ -9,7 +9,9 @@ normalises the goal speed by ``goal_speed_scale`` (the authors' speed / 30).
 * **DQL**: one Q head on a fixed reward (collision plus speed); no goal input; gamma 0.99.  Used as a
   data-collection policy too (``baseline_policy`` with ``small_cem``, inside ``collect.exploration_policy``).
 * **GC-DQL**: one Q head on the combined reward ``collision_reward`` on a crash, else
-  ``sum_k w_k * phi_k`` over ``reward_terms``; goals are inputs; hindsight goals in training.
+  ``sum_k w_k * phi_k`` over ``reward_terms``; goals are inputs; hindsight goals in training.  DQL and
+  GC-DQL learn Q of that reward times ``reward_scaling`` (the forest and CARLA variants: one over the crash
+  penalty; the greedy action is unchanged): at the paper's scale the Q-network died within 1,000 steps.
 * **GC-DQL-sep**: one head per sub-reward: ``collision`` (sigmoid, cross-entropy on the bootstrapped
   probability ``c' + gamma (1 - d) Q'_coll``, which stays in [0, 1] because a crash is terminal) and one
   linear head per term of ``reward_terms`` (0.5 squared error).  At action selection the heads are

@@ -43,6 +43,11 @@ class BaselineConfig:
     goal_speed_scale: float = 30.0  # the goal-speed input is goal_speed / goal_speed_scale
     hindsight: bool = True  # offline: goal heading from the window's pose to the episode's final position
     no_bootstrap: tuple[str, ...] = ()  # GC-DQL-sep heads trained on the immediate sub-reward only
+    # DQL / GC-DQL learn Q of ``reward_scaling`` x the reward.  A positive factor leaves the greedy action
+    # unchanged; at the paper's scale (-500 or -1000 on a crash) the squared TD error of the first steps
+    # killed every unit of the Q-network within 1,000 steps (Q constant over actions and observations,
+    # README "Baselines"), so the forest and CARLA variants learn in units of the crash penalty.
+    reward_scaling: float = 1.0
 
     def __post_init__(self):
         object.__setattr__(self, "reward_terms", tuple((str(n), float(w)) for n, w in self.reward_terms))
@@ -61,6 +66,11 @@ class BaselineConfig:
             raise ValueError(f"BaselineConfig.reward_terms: names must be distinct sub-rewards of {SUB_REWARDS}, got {names}")
         if not all(np.isfinite([w for _, w in self.reward_terms] + [self.collision_reward, self.goal_speed])):
             raise ValueError("BaselineConfig.reward_terms weights, collision_reward and goal_speed must be finite")
+        if not (np.isfinite(self.reward_scaling) and self.reward_scaling > 0):
+            raise ValueError(f"BaselineConfig.reward_scaling must be a positive finite number, got {self.reward_scaling!r}")
+        if self.kind == "gc_dql_sep" and self.reward_scaling != 1.0:
+            raise ValueError("BaselineConfig.reward_scaling must be 1.0 for gc_dql_sep: its heads (a crash probability "
+                             f"and each sub-reward) are combined at selection in their own units, got {self.reward_scaling}")
         if not self.goal_speed_scale > 0:
             raise ValueError(f"BaselineConfig.goal_speed_scale must be positive, got {self.goal_speed_scale}")
         unknown = sorted(set(self.no_bootstrap) - set(self.head_names))
@@ -82,17 +92,21 @@ class BaselineConfig:
     # The paper's variants (caps-algorithm.md section 7) as data.
     @classmethod
     def carla(cls, kind: str) -> "BaselineConfig":
+        scaling = {} if kind == "gc_dql_sep" else {"reward_scaling": 1e-3}  # Q in units of the crash penalty
         if kind == "dql":
-            return cls(kind, gamma=0.99, collision_reward=-1000.0, reward_terms=(("speed", 1.0),), goal_speed=7.0)
+            return cls(kind, gamma=0.99, collision_reward=-1000.0, reward_terms=(("speed", 1.0),), goal_speed=7.0,
+                       **scaling)
         return cls(kind, gamma=0.95, collision_reward=-1000.0,
-                   reward_terms=(("speed", 1.0), ("lane", 10.0), ("heading_angle", 5.0)), goal_speed=7.0)
+                   reward_terms=(("speed", 1.0), ("lane", 10.0), ("heading_angle", 5.0)), goal_speed=7.0, **scaling)
 
     @classmethod
     def forest(cls, kind: str) -> "BaselineConfig":
+        scaling = {} if kind == "gc_dql_sep" else {"reward_scaling": 1.0 / 500.0}  # Q in units of the crash penalty
         if kind == "dql":
-            return cls(kind, gamma=0.99, collision_reward=-500.0, reward_terms=(("speed_sq", 1.0),), goal_speed=2.0)
+            return cls(kind, gamma=0.99, collision_reward=-500.0, reward_terms=(("speed_sq", 1.0),), goal_speed=2.0,
+                       **scaling)
         return cls(kind, gamma=0.95, collision_reward=-500.0,
-                   reward_terms=(("heading_cos", 1.0), ("speed_sq", 1.0)), goal_speed=2.0)
+                   reward_terms=(("heading_cos", 1.0), ("speed_sq", 1.0)), goal_speed=2.0, **scaling)
 
     @classmethod
     def halls(cls, kind: str) -> "BaselineConfig":
@@ -255,7 +269,7 @@ def head_rewards(agent: BaselineAgent, tr: Transition) -> dict:
     if cfg.kind == "gc_dql_sep":
         return {"collision": crash, **sub}
     shaped = sum((w * sub[n] for n, w in cfg.reward_terms), jnp.zeros_like(crash))
-    return {"q": crash * cfg.collision_reward + (1.0 - crash) * shaped}
+    return {"q": cfg.reward_scaling * (crash * cfg.collision_reward + (1.0 - crash) * shaped)}
 
 
 def td_targets(rewards: dict, next_values: dict, done: jax.Array, gamma: float, no_bootstrap=()) -> dict:
@@ -422,8 +436,9 @@ def fit_offline(agent: BaselineAgent, train_cfg: training.TrainConfig, sample_ba
                 key=None, state: BaselineState | None = None, ckpt_dir=None, save_every: int = 1000, keep: int = 3,
                 metadata: dict | None = None):
     """Offline training to ``num_steps`` gradient steps in jitted chunks of up to ``save_every``, saved
-    with orbax after each chunk and resumed from the latest checkpoint in ``ckpt_dir`` (refused if it was
-    written with other configs or ``metadata``, as in ``training.fit``)."""
+    with orbax after each chunk and resumed from the latest checkpoint in ``ckpt_dir`` up to ``num_steps``
+    (refused if it was written with other configs or ``metadata``, or trained past ``num_steps`` without
+    that step saved: ``Checkpointer.resume``, as in ``training.fit``)."""
     for name, value in (("num_steps", num_steps), ("save_every", save_every)):
         if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
             raise ValueError(f"fit_offline: {name} must be a positive int, got {value!r}")
@@ -433,9 +448,10 @@ def fit_offline(agent: BaselineAgent, train_cfg: training.TrainConfig, sample_ba
                if ckpt_dir else None)
     trains, metrics = {}, {}
     try:
-        if manager is not None and manager.latest_step() is not None:
-            state, restored = manager.restore(state)
-            log.info("resumed baseline from step %d in %s", restored, ckpt_dir)
+        if manager is not None:
+            state, restored = manager.resume(state, num_steps, who="fit_offline")
+            if restored is not None:
+                log.info("resumed baseline from step %d in %s", restored, ckpt_dir)
         while int(state.step) < num_steps:
             done = int(state.step)
             length = min(save_every - done % save_every, num_steps - done)
