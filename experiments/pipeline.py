@@ -174,7 +174,8 @@ class RunConfig:
     """'ci' (a minute or two, used by the tests), 'small' (the default: a full result on a 2-core CPU)
     or 'paper' (the paper's data sizes, horizon and CEM; meant for a GPU); the city and the halls also have
     'small_onpolicy' (`small` plus the on-policy stage, ~10 minutes longer), the forest 'medium' (4x `small`'s
-    data and CAPs steps, ~2 hours on a 2-core CPU with its baselines)."""
+    data and CAPs steps, ~2 hours on a 2-core CPU with its baselines) and 'large' (`medium` with 8x `small`'s
+    CAPs steps, ~2.5 hours)."""
     seed: int = 0
     """Evaluation seed: the evaluated tasks (layouts, paths, goals) come from this seed's stream of ``--split``."""
     split: Literal["eval", "val"] = "eval"
