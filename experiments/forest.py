@@ -56,7 +56,8 @@ PRESETS = {
     # baselines keep `medium`'s 40k.  The learning rate is constant and the batch keys live in the train
     # state, so this equals `medium`'s run continued from its 80k checkpoint (how it was measured).  Chosen
     # on 'val' (64 paths, 2026-12-05, an AVX-512 host; CAPs success over val seeds 0 and 1, held-out
-    # collision loss): 80k 56 % (0.087), 120k 56 % (0.072), 160k 66 % (0.064).  CAPs alone ~52 minutes.
+    # collision loss): 80k 56 % (0.087), 120k 56 % (0.072), 160k 66 % (0.064); 240k 69 % (0.064) is within
+    # the planner's noise with the loss flat, so not worth 26 more minutes.  CAPs alone ~52 minutes.
     "large": dataclasses.replace(MEDIUM, train_steps=160_000),
     "paper": Preset(collect_steps=800_000, collect_robots=256, episode_length=400, train_steps=360_000,
                     baseline_steps=360_000, eval_episodes=48, eval_steps=160, cem=(4096, 1024, 4, 128), horizon=16,
