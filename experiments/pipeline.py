@@ -63,6 +63,9 @@ class Preset:
     image_pool: int = 1  # ModelConfig.image_pool: average-pool frames before the CNN (a CPU-budget knob)
     mirror: bool = False  # mirror half of the training windows left-right (data.make_sampler(mirror=True))
     cem_return: str = "best"  # CEMConfig.return_mode of every method's planner: the paper's 'best' or 'mean'
+    # CEMConfig.warm_start of the CAPs planner (horizon > 1; not the paper's): half of CEM's first samples
+    # are drawn around the previous control step's plan shifted by one step, so a plan is refined over steps.
+    cem_warm_start: bool = False
     collect_hold: float = 1.0  # collect.random_policy(mean_hold=...): mean steps each random action is held
     # Where collection episodes start: 'task' (the training task's own start, e.g. on its path) or
     # 'anywhere' (uniform over the arena, any yaw: the env's ``sample_task_anywhere``; forest only).
@@ -250,7 +253,9 @@ def onpolicy_stage(exp: Experiment, preset: Preset, env, model, params, data_dir
     policy = collect.exploration_policy(mpc.caps_policy(model, cem), env.spec, schedule=schedule)
     name = {"policy": "CAPs MPC with exploration noise", "reward": method.name, "weights": dict(method.weights),
             "goal_speed": method.goal_speed, "cem": list(preset.onpolicy_cem), "sigma": sigma, "epsilon": epsilon,
-            "cem_return": preset.cem_return, "params_sha256": params_digest(params)}
+            "cem_return": preset.cem_return, "params_sha256": params_digest(params),
+            # only when set, so that data collected before the option existed still match
+            **({"cem_warm_start": True} if preset.cem_warm_start else {})}
     t = time.time()
     ds = collect.collect(env, policy, params, method_spec(method, model), path=str(data_dir / "onpolicy.zarr"),
                          num_steps=preset.onpolicy_steps, num_robots=preset.collect_robots,
@@ -385,7 +390,8 @@ def cem_config(preset: Preset, env, horizon: int) -> capsjax.CEMConfig:
     """The planner of every method (CAPs at the preset's horizon, the one-step baselines at 1)."""
     init, samples, iterations, elites = preset.cem
     return capsjax.CEMConfig(env.spec.plan_low, env.spec.plan_high, horizon=horizon, init_samples=init,
-                             samples=samples, iterations=iterations, elites=elites, return_mode=preset.cem_return)
+                             samples=samples, iterations=iterations, elites=elites, return_mode=preset.cem_return,
+                             warm_start=preset.cem_warm_start and horizon > 1)
 
 
 def evaluate(exp: Experiment, preset: Preset, env, method: Method, policy: mpc.Policy, params, spec: RewardSpec,

@@ -92,7 +92,8 @@ def test_ci_preset_runs_end_to_end_and_resumes(module, tmp_path):
 def test_smoke_preset_keeps_what_is_run_and_shrinks_how_much(tmp_path, monkeypatch):
     paper, ci = indoor.PRESETS["paper"], pipeline.ci_preset()
     smoke = pipeline.smoke_preset(paper)
-    for name in ("cem", "horizon", "conv", "obs_hidden", "image_pool", "batch_size", "mirror", "cem_return"):
+    for name in ("cem", "horizon", "conv", "obs_hidden", "image_pool", "batch_size", "mirror", "cem_return",
+                 "cem_warm_start"):
         assert getattr(smoke, name) == getattr(paper, name), name
     for name in ("collect_steps", "train_steps", "baseline_steps", "eval_episodes", "eval_steps", "segmenter_steps"):
         assert getattr(smoke, name) == getattr(ci, name) < getattr(paper, name), name
@@ -143,6 +144,15 @@ def test_every_method_plans_with_the_presets_return_mode():
     assert pipeline.cem_config(preset, env, horizon=1).return_mode == "mean"
     with pytest.raises(ValueError, match="return_mode"):
         pipeline.cem_config(dataclasses.replace(preset, cem_return="median"), env, horizon=4)
+
+
+def test_warm_start_reaches_the_caps_planner_only():
+    # The one-step baselines' planner has no sequence to shift, so the preset's warm start is CAPs' alone.
+    env = envs.make("forest")
+    preset = forest.PRESETS["medium"]
+    assert preset.cem_warm_start and not forest.PRESETS["small"].cem_warm_start
+    assert pipeline.cem_config(preset, env, horizon=preset.horizon).warm_start
+    assert not pipeline.cem_config(preset, env, horizon=1).warm_start
 
 
 def test_command_line_help_explains_every_option():
