@@ -60,6 +60,8 @@ GATED = ("heading_angle", "door")
 # 38 %; 0.4 7.8 %, 48 %, 12 %; 1.0 8.2 %, 58 %, 25 %: 0.2 raises the door share most for the least route.
 # Re-checked with the current model on 16 'val' loops: no door term 4.0 %, 94 %, 81 %; 0.05 3.9 %, 97 %,
 # 94 %; 0.1 3.9 %, 93 %, 81 %; 0.2 5.2 % (+31 %), 98 %, 94 %: 0.2 stays.
+# On an AVX-512 host with the small_onpolicy model (16 'val' loops; door share vs no door term, no crash):
+# 0.05 +7 %, 14/16; 0.1 +13 %, 16/16; 0.2 +65 %, 14/16 (none: 15/16): 0.2 stays (README).
 DOOR_WEIGHT = 0.2
 # The paper's heading weight 0.1 is worth at most 0.1 per step between the commanded corridor and the
 # opposite one, less than the collision model's doubts about a turn it cannot yet see round: on the
