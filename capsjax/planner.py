@@ -9,8 +9,9 @@ Paper defaults (caps-algorithm.md section 5.1): a uniform first iteration of 409
 of 1024 from a full-covariance Gaussian, 128 elites, samples clipped to the box, execute the first
 action of the best sample of the last iteration.  Options the paper lacks: diagonal covariance, the
 textbook centred covariance (default; ``centred=False`` is the paper's uncentred second moment, for
-parity), a warm start from the previous plan shifted by one step, returning the elite mean instead of
-the best sample, and random shooting.
+parity), a warm start from the previous plan shifted by one step, returning the elite mean (or the mean of
+the elites nearest the best, which never averages two modes) instead of the best sample, and random
+shooting.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from flax import struct
 from capsjax import reward as reward_lib
 
 COVARIANCES = ("full", "diag")
-RETURN_MODES = ("best", "mean")
+RETURN_MODES = ("best", "mean", "local_mean")
 OPTIMIZERS = ("cem", "random")
 
 
@@ -204,10 +205,18 @@ def cem_search(score, key, plan_state: PlanState, *, cfg: CEMConfig):
         values = score_flat(population)
 
     top_values, top_idx = jax.lax.top_k(values, min(cfg.elites, values.shape[0]))
+    elites = population[top_idx]  # best first
     if cfg.return_mode == "best":
-        chosen = population[top_idx[0]]
-    else:
-        chosen = jnp.clip(population[top_idx].mean(0), low, high)
+        chosen = elites[0]
+    elif cfg.return_mode == "mean":
+        chosen = jnp.clip(elites.mean(0), low, high)
+    else:  # 'local_mean'
+        # The elites may hold two modes (round an obstacle on the left or on the right) whose mean is the
+        # crash between them: average only the half of the elites nearest the best one (distances in
+        # box half-ranges), which smooths the best sample's noise without crossing to the other mode.
+        offsets = (elites - elites[0]) / (0.5 * (high - low))
+        _, near = jax.lax.top_k(-jnp.sum(jnp.square(offsets), -1), max(1, elites.shape[0] // 2))
+        chosen = jnp.clip(elites[near].mean(0), low, high)
     return chosen.reshape(horizon, adim), top_values
 
 

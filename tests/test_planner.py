@@ -107,7 +107,8 @@ def test_candidates_with_nan_predictions_are_never_chosen():
 
 
 @pytest.mark.parametrize("options", [
-    dict(covariance="diag"), dict(centred=False), dict(return_mode="mean"), dict(optimizer="random"),
+    dict(covariance="diag"), dict(centred=False), dict(return_mode="mean"), dict(return_mode="local_mean"),
+    dict(optimizer="random"),
     dict(warm_start=True), dict(iterations=1), dict(iterations=2),
 ])
 def test_every_option_returns_an_action_in_the_box(options):
@@ -132,6 +133,24 @@ def test_warm_start_keeps_a_good_plan():
     _, _, warm = planner.plan(ORACLE, ONE_OBSTACLE, obs, spec, ps, jax.random.key(0), cfg=cfg)
     _, _, cold = planner.plan(ORACLE, ONE_OBSTACLE, obs, spec, planner.init_plan_state(cfg), jax.random.key(0), cfg=cfg)
     assert float(warm["value"]) >= float(cold["value"])
+
+
+def test_local_mean_stays_in_one_of_two_equally_good_modes():
+    # Two equally good plans, steering -1 and +1 throughout (round an obstacle on either side), and a
+    # straight plan, between them, that is the worst: the elite mean of a population holding both modes
+    # is that straight plan, the mean of the elites near the best stays in the best's mode.
+    cfg = planner.CEMConfig((-1.0,), (1.0,), horizon=4, init_samples=512, samples=512, iterations=1, elites=64)
+
+    def score(seqs):  # f32[M, H, 1]: distance to the nearer mode
+        x = seqs[..., 0]
+        return -jnp.minimum(jnp.sum(jnp.square(x - 1.0), -1), jnp.sum(jnp.square(x + 1.0), -1))
+
+    state = planner.init_plan_state(cfg)
+    chosen = {mode: planner.cem_search(score, jax.random.key(3), state, cfg=dataclasses.replace(cfg, return_mode=mode))[0]
+              for mode in ("mean", "local_mean")}
+    assert abs(float(chosen["mean"].mean())) < 0.3  # between the modes
+    local = np.asarray(chosen["local_mean"][:, 0])
+    assert np.all(np.abs(local) > 0.5) and len(set(np.sign(local))) == 1  # inside one mode
 
 
 def test_vmap_over_robots_with_their_own_rewards():
