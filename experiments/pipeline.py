@@ -62,7 +62,7 @@ class Preset:
     save_every: int = 1000
     image_pool: int = 1  # ModelConfig.image_pool: average-pool frames before the CNN (a CPU-budget knob)
     mirror: bool = False  # mirror half of the training windows left-right (data.make_sampler(mirror=True))
-    cem_return: str = "best"  # CEMConfig.return_mode of every method's planner: the paper's 'best' or 'mean'
+    cem_return: str = "best"  # CEMConfig.return_mode of every method's planner: the paper's 'best', 'mean' or 'local_mean'
     # CEMConfig.warm_start of the CAPs planner (horizon > 1; not the paper's): half of CEM's first samples
     # are drawn around the previous control step's plan shifted by one step, so a plan is refined over steps.
     cem_warm_start: bool = False
