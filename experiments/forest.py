@@ -45,7 +45,8 @@ PRESETS = {
     # walls, foreseen steps ahead: facing a wall, turning left and turning right are both good plans and
     # their mean is the straight one (README).  A wider steering box (+-45 degrees in collection and
     # planning, for tighter turns) gave a worse model (held-out collision loss 0.153 against 0.102) and
-    # 38 % against 72 % on val seed 0.  The baselines keep 10k steps each: 20k (equal steps, measured once: README) takes the run to
+    # 38 % against 72 % on val seed 0.
+    # The baselines keep 10k steps each: 20k (equal steps, measured once: README) takes the run to
     # ~34 minutes, over the `small` budget.  Also tried on 'val', and worse: twice the data (120k steps,
     # 56 %) and the paper's horizon H = 16 (38 %); a 4th CEM iteration (56 %), 16 elites (53 %), 512
     # samples (47 %); random actions held 4 steps on average in collection (59 %); over 64 'val' paths
