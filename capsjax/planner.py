@@ -10,8 +10,8 @@ of 1024 from a full-covariance Gaussian, 128 elites, samples clipped to the box,
 action of the best sample of the last iteration.  Options the paper lacks: diagonal covariance, the
 textbook centred covariance (default; ``centred=False`` is the paper's uncentred second moment, for
 parity), a warm start from the previous plan shifted by one step, returning the elite mean (or the mean of
-the elites nearest the best, which never averages two modes) instead of the best sample, and random
-shooting.
+the elites nearest the best, which never averages two modes) instead of the best sample, refitting each
+iteration to those nearest elites only (so the search follows one mode), and random shooting.
 """
 from __future__ import annotations
 
@@ -47,6 +47,9 @@ class CEMConfig:
     warm_start: bool = False
     warm_start_std: float = 0.2  # std of warm-start samples, as a fraction of the box half-range
     return_mode: str = "best"
+    # Refit each iteration's Gaussian to the half of its elites nearest the best one instead of to all of
+    # them, so that the search follows one mode (see 'local_mean'; not the paper's).
+    local_refit: bool = False
     optimizer: str = "cem"
     candidate_chunk: int = 0  # candidates scored per sequential chunk; 0 = auto (1024 on CPU, all on GPU)
 
@@ -188,15 +191,17 @@ def cem_search(score, key, plan_state: PlanState, *, cfg: CEMConfig):
     if cfg.optimizer == "random" or cfg.iterations == 1:
         population, values = first, values
     else:
-        _, top = jax.lax.top_k(values, cfg.elites)
-        mean, factor = _refit(first[top], cfg)
+        def refit(pop, vals):
+            _, idx = jax.lax.top_k(vals, cfg.elites)  # best first
+            return _refit(_nearest_half(pop[idx], low, high) if cfg.local_refit else pop[idx], cfg)
+
+        mean, factor = refit(first, values)
 
         def iteration(carry_, key_i):
             mean_, factor_ = carry_
             pop = jnp.clip(_sample_gaussian(key_i, mean_, factor_, cfg.samples, cfg), low, high)
             vals = score_flat(pop)
-            _, idx = jax.lax.top_k(vals, cfg.elites)
-            return _refit(pop[idx], cfg), (pop, vals)
+            return refit(pop, vals), (pop, vals)
 
         keys = jax.random.split(key_iters, cfg.iterations - 1)
         # All but the last iteration only refit; the last also returns its population for the choice.
@@ -210,14 +215,19 @@ def cem_search(score, key, plan_state: PlanState, *, cfg: CEMConfig):
         chosen = elites[0]
     elif cfg.return_mode == "mean":
         chosen = jnp.clip(elites.mean(0), low, high)
-    else:  # 'local_mean'
-        # The elites may hold two modes (round an obstacle on the left or on the right) whose mean is the
-        # crash between them: average only the half of the elites nearest the best one (distances in
-        # box half-ranges), which smooths the best sample's noise without crossing to the other mode.
-        offsets = (elites - elites[0]) / (0.5 * (high - low))
-        _, near = jax.lax.top_k(-jnp.sum(jnp.square(offsets), -1), max(1, elites.shape[0] // 2))
-        chosen = jnp.clip(elites[near].mean(0), low, high)
+    else:  # 'local_mean': smooths the best sample's noise without crossing to another mode
+        chosen = jnp.clip(_nearest_half(elites, low, high).mean(0), low, high)
     return chosen.reshape(horizon, adim), top_values
+
+
+def _nearest_half(elites: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
+    """The half of ``elites`` ``[K, D]`` (best first) nearest the best one, distances in box half-ranges.
+
+    Why: the elites may hold two modes (round an obstacle on the left or on the right) whose mean is the
+    crash between them; the elites nearest the best all lie in the best one's mode."""
+    offsets = (elites - elites[0]) / (0.5 * (high - low))
+    _, near = jax.lax.top_k(-jnp.sum(jnp.square(offsets), -1), max(1, elites.shape[0] // 2))
+    return elites[near]
 
 
 def plan(model, params, obs, spec: reward_lib.RewardSpec, plan_state: PlanState, key, *, cfg: CEMConfig):

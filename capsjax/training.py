@@ -45,6 +45,10 @@ class TrainConfig:
     l2_coeff: float = 0.125  # the paper's L2: l2_coeff / #params * sum ||W||^2 over kernels
     weight_decay: float = 0.0  # decoupled (AdamW-style), applied to kernels only
     batch_size: int = 32
+    # Cosine decay of the learning rate from ``learning_rate`` to zero over this many steps (held at zero
+    # after them); None keeps it constant, as the paper does.  The schedule's step count lives in the
+    # optimiser state, so a resumed run continues the schedule exactly.
+    lr_decay_steps: int | None = None
 
     def __post_init__(self):
         for name in ("learning_rate", "adam_eps"):
@@ -52,6 +56,9 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{name} must be positive and finite, got {getattr(self, name)}")
         if self.batch_size <= 0:
             raise ValueError(f"TrainConfig.batch_size must be positive, got {self.batch_size}")
+        steps = self.lr_decay_steps
+        if steps is not None and (not isinstance(steps, int) or isinstance(steps, bool) or steps <= 0):
+            raise ValueError(f"TrainConfig.lr_decay_steps must be a positive int or None, got {self.lr_decay_steps!r}")
         for name in ("clip_tensor_norm", "clip_global_norm"):
             v = getattr(self, name)
             if v is not None and not v > 0:
@@ -103,7 +110,10 @@ def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
     parts.append(optax.scale_by_adam(b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps))
     if cfg.weight_decay:
         parts.append(optax.add_decayed_weights(cfg.weight_decay, mask=_kernel_mask))
-    parts.append(optax.scale_by_learning_rate(cfg.learning_rate))
+    learning_rate = cfg.learning_rate
+    if cfg.lr_decay_steps is not None:
+        learning_rate = optax.cosine_decay_schedule(cfg.learning_rate, cfg.lr_decay_steps)
+    parts.append(optax.scale_by_learning_rate(learning_rate))
     return optax.chain(*parts)
 
 

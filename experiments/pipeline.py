@@ -55,6 +55,10 @@ class Preset:
     horizon: int = 12
     batch_size: int = 32
     learning_rate: float = 1e-4
+    # Decay every model's learning rate to zero by a cosine over its whole training (CAPs: ``train_steps``
+    # plus ``onpolicy_train_steps``; baselines: ``baseline_steps``; ``TrainConfig.lr_decay_steps``), instead
+    # of the paper's constant rate.
+    lr_decay: bool = False
     labelled_fraction: float = 0.002
     segmenter_steps: int = 1500
     conv: tuple = capsjax.model.PAPER_CONV
@@ -66,6 +70,7 @@ class Preset:
     # CEMConfig.warm_start of the CAPs planner (horizon > 1; not the paper's): half of CEM's first samples
     # are drawn around the previous control step's plan shifted by one step, so a plan is refined over steps.
     cem_warm_start: bool = False
+    cem_local_refit: bool = False  # CEMConfig.local_refit of every method's planner (not the paper's)
     collect_hold: float = 1.0  # collect.random_policy(mean_hold=...): mean steps each random action is held
     # Where collection episodes start: 'task' (the training task's own start, e.g. on its path) or
     # 'anywhere' (uniform over the arena, any yaw: the env's ``sample_task_anywhere``; forest only).
@@ -255,7 +260,8 @@ def onpolicy_stage(exp: Experiment, preset: Preset, env, model, params, data_dir
             "goal_speed": method.goal_speed, "cem": list(preset.onpolicy_cem), "sigma": sigma, "epsilon": epsilon,
             "cem_return": preset.cem_return, "params_sha256": params_digest(params),
             # only when set, so that data collected before the option existed still match
-            **({"cem_warm_start": True} if preset.cem_warm_start else {})}
+            **({"cem_warm_start": True} if preset.cem_warm_start else {}),
+            **({"cem_local_refit": True} if preset.cem_local_refit else {})}
     t = time.time()
     ds = collect.collect(env, policy, params, method_spec(method, model), path=str(data_dir / "onpolicy.zarr"),
                          num_steps=preset.onpolicy_steps, num_robots=preset.collect_robots,
@@ -349,11 +355,17 @@ def model_config(exp: Experiment, preset: Preset, env) -> capsjax.ModelConfig:
                                              obs_hidden=preset.obs_hidden, image_pool=preset.image_pool)
 
 
+def train_config(preset: Preset, total_steps: int) -> capsjax.TrainConfig:
+    """The optimiser settings of a model that trains ``total_steps`` in all under ``preset``."""
+    return capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate,
+                               lr_decay_steps=total_steps if preset.lr_decay else None)
+
+
 def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, cfg: RunConfig, *,
                num_steps: int | None = None, name: str = "caps", state=None):
     """CAPs to ``num_steps`` (default the preset's) in ``checkpoints/<name>``, from ``state`` if given
     (continued training) and resuming from the latest checkpoint there; returns the train state."""
-    train_cfg = capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate)
+    train_cfg = train_config(preset, preset.train_steps + preset.onpolicy_train_steps)
     ckpt_dir = data_dir / "checkpoints" / name
     t = time.time()
     with _advice_on_mismatch(ckpt_dir):
@@ -367,7 +379,7 @@ def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, 
 
 def train_baseline(exp: Experiment, preset: Preset, kind: str, model_cfg, env, sampler, data_dir: Path, cfg: RunConfig):
     agent = baselines.BaselineAgent.create(model_cfg, exp.baseline_config(kind), env.spec.plan_low, env.spec.plan_high)
-    train_cfg = capsjax.TrainConfig(batch_size=preset.batch_size, learning_rate=preset.learning_rate)
+    train_cfg = train_config(preset, preset.baseline_steps)
     ckpt_dir = data_dir / "checkpoints" / kind
     t = time.time()
     with _advice_on_mismatch(ckpt_dir):
@@ -391,7 +403,7 @@ def cem_config(preset: Preset, env, horizon: int) -> capsjax.CEMConfig:
     init, samples, iterations, elites = preset.cem
     return capsjax.CEMConfig(env.spec.plan_low, env.spec.plan_high, horizon=horizon, init_samples=init,
                              samples=samples, iterations=iterations, elites=elites, return_mode=preset.cem_return,
-                             warm_start=preset.cem_warm_start and horizon > 1)
+                             warm_start=preset.cem_warm_start and horizon > 1, local_refit=preset.cem_local_refit)
 
 
 def evaluate(exp: Experiment, preset: Preset, env, method: Method, policy: mpc.Policy, params, spec: RewardSpec,

@@ -5,6 +5,7 @@ import json
 import os
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import jax
@@ -153,6 +154,36 @@ def test_warm_start_reaches_the_caps_planner_only():
     assert preset.cem_warm_start and not forest.PRESETS["small"].cem_warm_start
     assert pipeline.cem_config(preset, env, horizon=preset.horizon).warm_start
     assert not pipeline.cem_config(preset, env, horizon=1).warm_start
+
+
+def test_lr_decay_spans_each_models_whole_training(monkeypatch, tmp_path):
+    # The cosine must end where each model's training ends: CAPs after its on-policy continuation too,
+    # the baselines after their own steps; without ``lr_decay`` the rate stays the paper's constant.
+    seen = {}
+
+    def fit_caps(model, cfg, *args, **kwargs):
+        seen["caps"] = cfg
+        return types.SimpleNamespace(step=0), {}
+
+    def fit_baseline(agent, cfg, *args, **kwargs):
+        seen["gc_dql"] = cfg
+        return types.SimpleNamespace(step=0, params={}), {}
+
+    monkeypatch.setattr(pipeline.training, "fit", fit_caps)
+    monkeypatch.setattr(pipeline.baselines, "fit_offline", fit_baseline)
+    env = envs.make("forest")
+    sampler = types.SimpleNamespace(batches=lambda batch_size: None)
+    run = pipeline.RunConfig(progress=False)
+    for lr_decay, caps_steps, baseline_steps in ((True, 250 + 300, 100), (False, None, None)):
+        preset = dataclasses.replace(forest.PRESETS["ci"], train_steps=250, onpolicy_steps=100, onpolicy_train_steps=300,
+                                     baseline_steps=100, lr_decay=lr_decay)
+        seen.clear()
+        model = capsjax.CAPsModel(pipeline.model_config(forest.EXPERIMENT, preset, env))
+        pipeline.train_caps(forest.EXPERIMENT, preset, model, sampler, tmp_path, run)
+        pipeline.train_baseline(forest.EXPERIMENT, preset, "gc_dql", model.config, env, sampler, tmp_path, run)
+        assert seen["caps"].lr_decay_steps == caps_steps
+        assert seen["gc_dql"].lr_decay_steps == baseline_steps
+        assert seen["caps"].learning_rate == seen["gc_dql"].learning_rate == preset.learning_rate
 
 
 def test_command_line_help_explains_every_option():

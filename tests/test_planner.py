@@ -1,4 +1,5 @@
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -108,7 +109,7 @@ def test_candidates_with_nan_predictions_are_never_chosen():
 
 @pytest.mark.parametrize("options", [
     dict(covariance="diag"), dict(centred=False), dict(return_mode="mean"), dict(return_mode="local_mean"),
-    dict(optimizer="random"),
+    dict(local_refit=True), dict(optimizer="random"),
     dict(warm_start=True), dict(iterations=1), dict(iterations=2),
 ])
 def test_every_option_returns_an_action_in_the_box(options):
@@ -151,6 +152,29 @@ def test_local_mean_stays_in_one_of_two_equally_good_modes():
     assert abs(float(chosen["mean"].mean())) < 0.3  # between the modes
     local = np.asarray(chosen["local_mean"][:, 0])
     assert np.all(np.abs(local) > 0.5) and len(set(np.sign(local))) == 1  # inside one mode
+
+
+def test_local_refit_follows_one_of_two_equally_good_modes():
+    # The same two modes: refitting the Gaussian to all elites keeps sampling both (and the straight plan
+    # between them), so after three iterations the elite mean is still often pulled towards the middle;
+    # refitting to the elites near the best follows one mode, so the final elites, and their plain mean,
+    # lie inside it.
+    cfg = planner.CEMConfig((-1.0,), (1.0,), horizon=4, init_samples=512, samples=512, iterations=3, elites=64,
+                            return_mode="mean")
+
+    def score(seqs):
+        x = seqs[..., 0]
+        return -jnp.minimum(jnp.sum(jnp.square(x - 1.0), -1), jnp.sum(jnp.square(x + 1.0), -1))
+
+    state = planner.init_plan_state(cfg)
+    off_mode = {}  # mean distance of the chosen plan's steps from the nearer mode, over planner keys
+    for local in (False, True):
+        search = jax.jit(functools.partial(planner.cem_search, score, cfg=dataclasses.replace(cfg, local_refit=local)))
+        plans = [np.asarray(search(jax.random.key(k), state)[0][:, 0]) for k in range(6)]
+        off_mode[local] = np.mean([1.0 - np.abs(p) for p in plans])
+        if local:
+            assert all(len(set(np.sign(p))) == 1 for p in plans)  # every step of a plan in one mode
+    assert off_mode[True] < 0.3 < off_mode[False] - 0.1, off_mode
 
 
 def test_vmap_over_robots_with_their_own_rewards():

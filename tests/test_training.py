@@ -42,6 +42,37 @@ def test_bad_train_config_is_refused():
         capsjax.TrainConfig(learning_rate=0.0)
     with pytest.raises(ValueError, match="clip_tensor_norm"):
         capsjax.TrainConfig(clip_tensor_norm=-1.0)
+    for bad in (0, -5, 2.5, True):
+        with pytest.raises(ValueError, match="lr_decay_steps"):
+            capsjax.TrainConfig(lr_decay_steps=bad)
+
+
+def test_cosine_decay_shrinks_the_step_to_zero_and_stays_there():
+    params = {"b": jnp.zeros(3)}
+    grads = {"b": jnp.ones(3)}  # a constant gradient: Adam's normalised step is ~1, so the step is the rate
+    sizes = {}
+    for decay in (None, 4):
+        opt = training.make_optimizer(capsjax.TrainConfig(learning_rate=0.1, clip_tensor_norm=None,
+                                                          lr_decay_steps=decay))
+        state, steps = opt.init(params), []
+        for _ in range(6):
+            updates, state = opt.update(grads, state, params)
+            steps.append(float(jnp.abs(updates["b"][0])))
+        sizes[decay] = np.array(steps)
+    np.testing.assert_allclose(sizes[None], 0.1, rtol=1e-3)  # the paper's constant rate
+    cosine = 0.1 * 0.5 * (1 + np.cos(np.pi * np.arange(6).clip(max=4) / 4))
+    np.testing.assert_allclose(sizes[4], cosine, rtol=1e-3, atol=1e-7)  # 0.1, 0.085, 0.05, 0.015, 0, 0
+
+
+def test_a_resumed_run_continues_the_learning_rate_schedule(tmp_path):
+    cfg = capsjax.TrainConfig(learning_rate=1e-3, batch_size=8, lr_decay_steps=4)
+    sample = StoredWindows(random_windows(ENV, jax.random.key(1), TASK, 64, 6), cfg.batch_size)
+    whole, _ = training.fit(MODEL, cfg, sample, 4, key=jax.random.key(2), save_every=2)
+    ckpt = str(tmp_path / "ckpt")
+    training.fit(MODEL, cfg, sample, 2, key=jax.random.key(2), ckpt_dir=ckpt, save_every=2)
+    resumed, _ = training.fit(MODEL, cfg, sample, 4, key=jax.random.key(2), ckpt_dir=ckpt, save_every=2)
+    for a, b in zip(jax.tree.leaves(whole.params), jax.tree.leaves(resumed.params)):
+        np.testing.assert_array_equal(a, b)  # exact on CPU: the schedule's count came back with the state
 
 
 def test_loss_needs_every_cue_signal():
