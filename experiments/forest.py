@@ -30,8 +30,10 @@ SMALL = Preset(collect_steps=60_000, collect_robots=64, episode_length=200, trai
 # `large` 66 -> 78 %, but `small` 58 -> 38 %: with `small`'s weaker model the refined plan is a slow one
 # (0.81 against 1.08 m/s) that still crashes.
 # `medium` and `large` were measured with the elite mean ('mean') and CEM refitting to all its elites;
-# 'local_mean' and ``cem_local_refit`` (chosen for `small` later) are untested there, so they keep what was
-# measured.
+# 'local_mean' and ``cem_local_refit`` (chosen for `small` later) were then tried on `large` (2026-12-06, an
+# AVX-512 host, the 64 'val' paths, its model retrained from scratch: 26 + 24 of 64 with this planner, the
+# counts of 2026-12-05): local mean + local refit with the warm start 24 + 25, without it 21 + 24.  Neither
+# adds the 4 paths set as the rule before the run, so `medium` and `large` keep the planner measured above.
 MEDIUM = dataclasses.replace(SMALL, collect_steps=240_000, train_steps=80_000, baseline_steps=40_000,
                              save_every=5000, cem_warm_start=True, cem_return="mean", cem_local_refit=False)
 
@@ -52,7 +54,8 @@ PRESETS = {
     # follows one mode instead of sampling between two, 77 % (26 + 23 of 64) against 67 % (23 + 20); no
     # crash 77 % against 67 %.  Also tried there and not better: the learning rate decayed by a cosine
     # over the 20k steps (``lr_decay``) from 5e-4, 67 % (23 + 20; held-out collision loss 0.099 against
-    # 0.102), and from 1e-3, 59 % (20 + 18; 0.115).
+    # 0.102), and from 1e-3, 59 % (20 + 18; 0.115).  With the local refit, 64 elites instead of 32 (so the
+    # refit's 32 points span all 24 plan dimensions): 61 % (20 + 19), 2026-12-06.
     # The baselines keep 10k steps each: 20k (equal steps, measured once: README) takes the run to
     # ~34 minutes, over the `small` budget.  Also tried on 'val', and worse: twice the data (120k steps,
     # 56 %) and the paper's horizon H = 16 (38 %); a 4th CEM iteration (56 %), 16 elites (53 %), 512
