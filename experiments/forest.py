@@ -32,8 +32,9 @@ SMALL = Preset(collect_steps=60_000, collect_robots=64, episode_length=200, trai
 # `medium` and `large` were measured with the elite mean ('mean') and CEM refitting to all its elites;
 # 'local_mean' and ``cem_local_refit`` (chosen for `small` later) were then tried on `large` (2026-12-06, an
 # AVX-512 host, the 64 'val' paths, its model retrained from scratch: 26 + 24 of 64 with this planner, the
-# counts of 2026-12-05): local mean + local refit with the warm start 24 + 25, without it 21 + 24.  Neither
-# adds the 4 paths set as the rule before the run, so `medium` and `large` keep the planner measured above.
+# counts of 2026-12-05): local mean + local refit with the warm start 24 + 25, without it 21 + 24; the local
+# mean alone with the warm start 29 + 23.  None adds the 4 paths set as the rule before the run, so `medium`
+# and `large` keep the planner measured above.
 MEDIUM = dataclasses.replace(SMALL, collect_steps=240_000, train_steps=80_000, baseline_steps=40_000,
                              save_every=5000, cem_warm_start=True, cem_return="mean", cem_local_refit=False)
 
