@@ -1,0 +1,211 @@
+"""``python -m experiments.pool``: one table over several evaluation seeds, and paired differences between runs.
+
+Each run of an experiment evaluates one seed (32 forest paths, 15 city goals, 8 halls loops), and a single
+seed's interval is wide.  This pools the per-episode results that every run stores in ``metrics.json``:
+
+    python -m experiments.pool results/forest/small_seed0 results/forest/small_seed1 --out results/forest/small_pooled
+
+writes ``metrics.json`` and ``table.md`` over all their episodes (intervals recomputed over the pooled
+episodes, the baselines comparison redone).  With ``--against`` it compares two variants evaluated on the same
+tasks (same experiment, split and seeds: a planner or reward setting chosen on 'val', say):
+
+    python -m experiments.pool results/forest/a_val_seed0 results/forest/a_val_seed1 \\
+        --against results/forest/b_val_seed0 results/forest/b_val_seed1
+
+and prints, per method and metric, the mean of the per-episode difference (runs minus ``--against``) with a
+bootstrap interval over the paired episodes.  Pairing by task removes the spread between tasks, so the
+interval is much narrower than the gap between two unpaired intervals.  Nothing is re-evaluated.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import tyro
+
+from experiments import pipeline, report
+
+# Fields that must agree for episodes of several runs to be pooled into one sample of one setting.
+POOL_KEYS = ("experiment", "preset", "split", "train_seed")
+
+
+@dataclasses.dataclass(frozen=True)
+class PoolConfig:
+    runs: Annotated[tuple[Path, ...], tyro.conf.Positional]
+    """Run folders (each with the ``metrics.json`` an experiment writes) of one preset, one split and
+    distinct evaluation seeds."""
+    against: tuple[Path, ...] = ()
+    """Run folders of another variant on the same tasks (the same experiment, split and seeds): report the
+    paired per-episode differences of ``runs`` minus these."""
+    out: Path | None = None
+    """Write the pooled ``metrics.json`` and ``table.md`` here (default: only print the table)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    path: Path
+    metrics: dict  # the run's metrics.json
+    env_overrides: str | None  # from config.json, when the run wrote one
+
+    @property
+    def seed(self) -> int:
+        return int(self.metrics["seed"])
+
+
+def load_run(path: Path) -> Run:
+    """A run folder's stored results, with a clear error when it is not one."""
+    path = Path(path)
+    file = path / "metrics.json"
+    if not file.is_file():
+        raise FileNotFoundError(f"run folder {path}: no metrics.json (expected the folder an experiment run wrote)")
+    metrics = json.loads(file.read_text())
+    missing = [k for k in (*POOL_KEYS, "seed", "per_episode") if k not in metrics]
+    if missing:
+        raise ValueError(f"{file}: missing field(s) {missing}; runs written before per-episode results were "
+                         "stored cannot be pooled")
+    config = path / "config.json"
+    overrides = json.loads(config.read_text()).get("env_overrides") if config.is_file() else None
+    return Run(path, metrics, None if overrides is None else json.dumps(overrides, sort_keys=True))
+
+
+def _require_same(runs: Sequence[Run], keys: Sequence[str], what: str) -> None:
+    for key in keys:
+        values = {json.dumps(r.metrics[key]) for r in runs}
+        if len(values) > 1:
+            detail = ", ".join(f"{r.path}: {r.metrics[key]!r}" for r in runs)
+            raise ValueError(f"{what}: field '{key}' differs between runs ({detail}); expected one value")
+    overrides = {r.env_overrides for r in runs if r.env_overrides is not None}
+    if len(overrides) > 1:
+        raise ValueError(f"{what}: field 'env_overrides' in config.json differs between runs ({sorted(overrides)}); "
+                         "their tasks are not the same kind")
+
+
+def _require_distinct_seeds(runs: Sequence[Run], what: str) -> None:
+    seeds = [r.seed for r in runs]
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"{what}: field 'seed' repeats ({seeds}); pooling one seed twice would count its "
+                         "episodes twice -- expected distinct evaluation seeds")
+
+
+def _common_methods(runs: Sequence[Run]) -> list[str]:
+    """Methods evaluated in every run, in the first run's order."""
+    return [m for m in runs[0].metrics["per_episode"] if all(m in r.metrics["per_episode"] for r in runs)]
+
+
+def pooled_episodes(runs: Sequence[Run]) -> dict[str, dict[str, np.ndarray]]:
+    """``{method: {metric: values}}`` over the episodes of all ``runs``, seeds in ascending order."""
+    runs = sorted(runs, key=lambda r: r.seed)
+    out = {}
+    for method in _common_methods(runs):
+        names = [k for k in runs[0].metrics["per_episode"][method]
+                 if all(k in r.metrics["per_episode"][method] for r in runs)]
+        out[method] = {k: np.concatenate([np.asarray(r.metrics["per_episode"][method][k], np.float64) for r in runs])
+                       for k in names}
+    return out
+
+
+def pool(runs: Sequence[Run]) -> dict:
+    """The runs' episodes as one result: what ``metrics.json`` holds for a single run, over every seed."""
+    if not runs:
+        raise ValueError("runs: expected at least one run folder")
+    _require_same(runs, POOL_KEYS, "pooling")
+    _require_distinct_seeds(runs, "pooling")
+    per_episode = pooled_episodes(runs)
+    metrics = {m: report.summarize(v) for m, v in per_episode.items()}
+    first = runs[0].metrics
+    exp = experiment(first["experiment"])
+    return {
+        **{k: first[k] for k in POOL_KEYS},
+        "seeds": sorted(r.seed for r in runs),
+        "runs": [str(r.path) for r in sorted(runs, key=lambda r: r.seed)],
+        "metrics": metrics,
+        "paper": first.get("paper", {}),
+        "comparison": pipeline.compare(exp, metrics),
+        "per_episode": {m: {k: v.tolist() for k, v in d.items()} for m, d in per_episode.items()},
+    }
+
+
+def paired_differences(runs: Sequence[Run], against: Sequence[Run]) -> dict[str, dict[str, dict]]:
+    """``{method: {metric: mean_ci(runs - against)}}`` over episodes paired by (seed, episode index)."""
+    for group, what in ((runs, "runs"), (against, "against")):
+        if not group:
+            raise ValueError(f"{what}: expected at least one run folder")
+        _require_distinct_seeds(group, what)
+    _require_same([*runs, *against], ("experiment", "split"), "paired comparison")
+    seeds_a, seeds_b = sorted(r.seed for r in runs), sorted(r.seed for r in against)
+    if seeds_a != seeds_b:
+        raise ValueError(f"against: field 'seed' must match the runs' seeds {seeds_a} (the same tasks), got {seeds_b}")
+    a, b = pooled_episodes(runs), pooled_episodes(against)
+    out = {}
+    for method in (m for m in a if m in b):
+        out[method] = {}
+        for metric in (k for k in a[method] if k in b[method]):
+            if a[method][metric].shape != b[method][metric].shape:
+                raise ValueError(f"against: method '{method}' metric '{metric}' has {b[method][metric].size} episodes, "
+                                 f"the runs {a[method][metric].size}; expected the same episodes on the same tasks")
+            out[method][metric] = report.mean_ci(a[method][metric] - b[method][metric])
+    return out
+
+
+def experiment(name: str):
+    """The ``Experiment`` of ``experiments/<name>.py`` (its table columns, paper numbers, comparison rule)."""
+    try:
+        module = importlib.import_module(f"experiments.{name}")
+    except ModuleNotFoundError as err:
+        raise ValueError(f"field 'experiment': unknown experiment {name!r}; expected forest, city or indoor") from err
+    return module.EXPERIMENT
+
+
+def difference_table(diffs: dict[str, dict[str, dict]], columns) -> str:
+    header = ["method"] + [h for _, h, _ in columns]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for method, stats in diffs.items():
+        cells = [method]
+        for key, _, kind in columns:
+            s = stats.get(key)
+            if s is None:
+                cells.append("-")
+            else:
+                scale, digits, unit = (100, 0, " pts") if kind == "rate" else (1, 2, "")
+                low, mean, high = (_signed(scale * s[k], digits) for k in ("ci_low", "mean", "ci_high"))
+                cells.append(f"{mean}{unit} [{low}, {high}]")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _signed(x: float, digits: int) -> str:
+    x = round(x, digits) + 0.0  # + 0.0 turns a rounded -0.0 into 0.0, so it prints as +0
+    return f"{x:+.{digits}f}"
+
+
+def main(cfg: PoolConfig) -> dict:
+    runs = [load_run(p) for p in cfg.runs]
+    pooled = pool(runs)
+    exp = experiment(pooled["experiment"])
+    seeds = ", ".join(map(str, pooled["seeds"]))
+    n = {m: next(iter(s.values()))["n"] for m, s in pooled["metrics"].items()}
+    notes = [f"Preset `{pooled['preset']}`, {pooled['split']} seeds {seeds} pooled ({max(n.values(), default=0)} "
+             "episodes per method); cells: mean [95 % bootstrap CI over the pooled episodes]."]
+    text = report.table(pooled["metrics"], exp.columns, pooled["paper"],
+                        title=f"{exp.name} ({pooled['preset']}, {pooled['split']} seeds {seeds})", notes=notes)
+    if cfg.against:
+        pooled["against"] = [str(p) for p in cfg.against]
+        pooled["paired_difference"] = paired_differences(runs, [load_run(p) for p in cfg.against])
+        text += (f"\nPaired differences per episode, runs minus --against ({', '.join(map(str, cfg.against))}), "
+                 "mean [95 % bootstrap CI over the paired episodes]:\n\n"
+                 + difference_table(pooled["paired_difference"], exp.columns))
+    if cfg.out is not None:
+        cfg.out.mkdir(parents=True, exist_ok=True)
+        report.write_json(cfg.out / "metrics.json", pooled)
+        (cfg.out / "table.md").write_text(text)
+    print(text)
+    return pooled
+
+
+if __name__ == "__main__":
+    main(tyro.cli(PoolConfig, description=__doc__.split("\n\n")[0]))

@@ -1,0 +1,87 @@
+"""experiments/pool.py: pooling evaluation seeds and paired differences, from stored run folders only."""
+import json
+
+import numpy as np
+import pytest
+
+from experiments import pool
+
+
+def write_run(folder, *, seed, success, distance, preset="small", split="val", experiment="forest",
+              baseline_success=None, env_overrides=None):
+    folder.mkdir(parents=True)
+    per_episode = {"caps": {"success_rate": [float(x) for x in success],
+                            "path_distance_mean": [float(x) for x in distance]}}
+    if baseline_success is not None:
+        per_episode["gc_dql"] = {"success_rate": list(baseline_success),
+                                 "path_distance_mean": [1.0] * len(baseline_success)}
+    metrics = {"experiment": experiment, "preset": preset, "seed": seed, "split": split, "train_seed": 0,
+               "paper": {"caps": {"success_rate": 0.75}}, "per_episode": per_episode}
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+    if env_overrides is not None:
+        (folder / "config.json").write_text(json.dumps({"env_overrides": env_overrides}))
+    return folder
+
+
+def test_pool_concatenates_seeds_and_recomputes_intervals(tmp_path):
+    a = write_run(tmp_path / "s0", seed=0, success=[1, 1, 0, 1], distance=[1, 2, 3, 4], baseline_success=[0] * 4)
+    b = write_run(tmp_path / "s1", seed=1, success=[0, 1, 1, 1], distance=[2, 2, 2, 2], baseline_success=[0] * 4)
+    out = tmp_path / "pooled"
+    pooled = pool.main(pool.PoolConfig(runs=(b, a), out=out))  # order of the folders does not matter
+    caps = pooled["metrics"]["caps"]["success_rate"]
+    assert caps["n"] == 8 and caps["mean"] == pytest.approx(6 / 8)
+    assert caps["ci_low"] < caps["mean"] < caps["ci_high"]
+    assert pooled["per_episode"]["caps"]["path_distance_mean"] == [1, 2, 3, 4, 2, 2, 2, 2]  # seed 0 first
+    assert pooled["seeds"] == [0, 1]
+    # 6 of 8 against 0 of 8: CAPs beats the baseline beyond both intervals over the pooled episodes.
+    assert pooled["comparison"] == {"caps": {"gc_dql": True}}
+    stored = json.loads((out / "metrics.json").read_text())
+    assert stored["metrics"]["caps"]["success_rate"]["mean"] == pytest.approx(0.75)
+    table = (out / "table.md").read_text()
+    assert "caps (ours) | 75 % [" in table and "seeds 0, 1 pooled (8 episodes" in table
+
+
+def test_paired_difference_is_per_task(tmp_path):
+    success_a = np.array([1, 1, 1, 0, 1, 1, 0, 1])
+    success_b = np.array([1, 0, 1, 0, 1, 1, 0, 0])  # loses exactly two tasks, wins none
+    runs = [write_run(tmp_path / f"a{s}", seed=s, success=success_a[4 * s:4 * s + 4], distance=[1.0] * 4)
+            for s in (0, 1)]
+    against = [write_run(tmp_path / f"b{s}", seed=s, success=success_b[4 * s:4 * s + 4], distance=[1.5] * 4,
+                         preset="other") for s in (0, 1)]
+    pooled = pool.main(pool.PoolConfig(runs=tuple(runs), against=tuple(against)))
+    diff = pooled["paired_difference"]["caps"]
+    assert diff["success_rate"]["mean"] == pytest.approx(2 / 8)
+    assert diff["success_rate"]["ci_low"] >= 0.0  # never negative on any task, so no resample is either
+    assert diff["path_distance_mean"]["mean"] == pytest.approx(-0.5)
+    assert diff["path_distance_mean"]["ci_low"] == pytest.approx(-0.5) == diff["path_distance_mean"]["ci_high"]
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(split="eval"), "field 'split' differs"),
+    (dict(preset="large"), "field 'preset' differs"),
+    (dict(seed=0), "field 'seed' repeats"),
+    (dict(env_overrides={"arena_half": 20.0}), "field 'env_overrides'"),
+])
+def test_pool_refuses_runs_of_different_settings(tmp_path, change, message):
+    a = write_run(tmp_path / "a", seed=0, success=[1], distance=[1.0], env_overrides={})
+    b = write_run(tmp_path / "b", **{**dict(seed=1, success=[0], distance=[1.0], env_overrides={}), **change})
+    with pytest.raises(ValueError, match=message):
+        pool.pool([pool.load_run(a), pool.load_run(b)])
+
+
+def test_paired_difference_needs_the_same_tasks(tmp_path):
+    a = write_run(tmp_path / "a", seed=0, success=[1, 1], distance=[1.0, 1.0])
+    other_seed = write_run(tmp_path / "b", seed=1, success=[1, 0], distance=[1.0, 1.0])
+    fewer = write_run(tmp_path / "c", seed=0, success=[1], distance=[1.0])
+    with pytest.raises(ValueError, match="field 'seed' must match"):
+        pool.paired_differences([pool.load_run(a)], [pool.load_run(other_seed)])
+    with pytest.raises(ValueError, match="expected the same episodes"):
+        pool.paired_differences([pool.load_run(a)], [pool.load_run(fewer)])
+
+
+def test_load_run_names_what_is_missing(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no metrics.json"):
+        pool.load_run(tmp_path)
+    (tmp_path / "metrics.json").write_text(json.dumps({"experiment": "forest", "seed": 0}))
+    with pytest.raises(ValueError, match="per_episode"):
+        pool.load_run(tmp_path)
