@@ -42,6 +42,10 @@ class PoolConfig:
     against: tuple[Path, ...] = ()
     """Run folders of another variant on the same tasks (the same experiment, split and seeds): report the
     paired per-episode differences of ``runs`` minus these."""
+    pair: tuple[str, str] | None = None
+    """Two methods of the runs (e.g. ``caps_heading_door_x4 caps_heading``): per metric, their paired
+    per-episode difference (first minus second) and the relative change of the mean (first / second - 1),
+    both over the pooled episodes, which are the same tasks for every method of a run."""
     out: Path | None = None
     """Write the pooled ``metrics.json`` and ``table.md`` here (default: only print the table)."""
 
@@ -152,6 +156,17 @@ def paired_differences(runs: Sequence[Run], against: Sequence[Run]) -> dict[str,
     return out
 
 
+def method_pair(pooled: dict, first: str, second: str) -> dict[str, dict[str, dict]]:
+    """``{metric: {"difference": mean_ci(first - second), "relative": relative_change_ci(first, second)}}``."""
+    episodes = pooled["per_episode"]
+    for name in (first, second):
+        if name not in episodes:
+            raise ValueError(f"pair: method {name!r} was not evaluated in every run; expected one of {sorted(episodes)}")
+    a, b = episodes[first], episodes[second]
+    return {k: {"difference": report.mean_ci(np.subtract(a[k], b[k])), "relative": report.relative_change_ci(a[k], b[k])}
+            for k in a if k in b}
+
+
 def experiment(name: str):
     """The ``Experiment`` of ``experiments/<name>.py`` (its table columns, paper numbers, comparison rule)."""
     try:
@@ -199,6 +214,15 @@ def main(cfg: PoolConfig) -> dict:
         text += (f"\nPaired differences per episode, runs minus --against ({', '.join(map(str, cfg.against))}), "
                  "mean [95 % bootstrap CI over the paired episodes]:\n\n"
                  + difference_table(pooled["paired_difference"], exp.columns))
+    if cfg.pair is not None:
+        first, second = cfg.pair
+        pooled["pair"] = {"methods": [first, second], "metrics": method_pair(pooled, first, second)}
+        text += f"\n{first} against {second} on the same episodes, mean [95 % bootstrap CI over the paired episodes]:\n\n"
+        text += "| metric | difference | relative change of the mean |\n|---|---|---|\n"
+        for metric, stats in pooled["pair"]["metrics"].items():
+            d, r = stats["difference"], stats["relative"]
+            text += (f"| {metric} | {_signed(d['mean'], 3)} [{_signed(d['ci_low'], 3)}, {_signed(d['ci_high'], 3)}] | "
+                     f"{_signed(100 * r['mean'], 0)} % [{_signed(100 * r['ci_low'], 0)}, {_signed(100 * r['ci_high'], 0)}] |\n")
     if cfg.out is not None:
         cfg.out.mkdir(parents=True, exist_ok=True)
         report.write_json(cfg.out / "metrics.json", pooled)

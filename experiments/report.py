@@ -37,6 +37,26 @@ def mean_ci(values, *, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAM
     }
 
 
+def relative_change_ci(a, b, *, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> dict:
+    """``mean(a) / mean(b) - 1`` for paired per-episode values, with a bootstrap interval that resamples the
+    pairs together (e.g. the door share of one reward over another's, on the same loops)."""
+    a = np.asarray(a, np.float64).reshape(-1)
+    b = np.asarray(b, np.float64).reshape(-1)
+    if a.shape != b.shape:
+        raise ValueError(f"relative_change_ci: expected paired values, got {a.size} and {b.size}")
+    keep = np.isfinite(a) & np.isfinite(b)
+    a, b = a[keep], b[keep]
+    if a.size == 0 or b.mean() == 0:
+        return {"mean": float("nan"), "ci_low": float("nan"), "ci_high": float("nan"), "n": int(a.size)}
+    idx = np.random.default_rng(seed).integers(0, a.size, size=(resamples, a.size))
+    base = b[idx].mean(1)
+    # A resample whose base mean is 0 has no relative change: it is left out rather than counted as infinite.
+    ratios = np.where(base != 0, a[idx].mean(1) / np.where(base != 0, base, 1.0) - 1, np.nan)
+    alpha = (1 - level) / 2
+    return {"mean": float(a.mean() / b.mean() - 1), "ci_low": float(np.nanquantile(ratios, alpha)),
+            "ci_high": float(np.nanquantile(ratios, 1 - alpha)), "n": int(a.size)}
+
+
 def summarize(per_episode: Mapping[str, np.ndarray]) -> dict:
     """``{metric: mean_ci(values)}`` for per-episode metric arrays."""
     return {name: mean_ci(values) for name, values in per_episode.items()}

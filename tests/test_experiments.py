@@ -32,6 +32,17 @@ def test_mean_ci_brackets_the_mean_and_narrows_with_more_episodes():
     assert report.mean_ci([np.nan])["n"] == 0
 
 
+def test_relative_change_ci_resamples_pairs_together():
+    base = np.array([4.0, 2.0, 6.0, 3.0, 5.0, 4.0])
+    stat = report.relative_change_ci(1.3 * base, base)  # every pair +30 %, however unequal the pairs are
+    assert stat["mean"] == pytest.approx(0.3)
+    assert stat["ci_low"] == pytest.approx(0.3) and stat["ci_high"] == pytest.approx(0.3)
+    noisy = report.relative_change_ci(base + np.array([1.0, -1.0, 2.0, -2.0, 0.5, 0.0]), base)
+    assert noisy["ci_low"] < noisy["mean"] < noisy["ci_high"]
+    with pytest.raises(ValueError, match="paired"):
+        report.relative_change_ci([1.0, 2.0], [1.0])
+
+
 def test_separated_needs_clear_intervals():
     a = report.mean_ci([1.0] * 10)
     b = report.mean_ci([0.0] * 10)

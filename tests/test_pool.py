@@ -79,6 +79,19 @@ def test_paired_difference_needs_the_same_tasks(tmp_path):
         pool.paired_differences([pool.load_run(a)], [pool.load_run(fewer)])
 
 
+def test_pair_compares_two_methods_on_the_same_episodes(tmp_path):
+    runs = [write_run(tmp_path / f"s{s}", seed=s, success=[1, 1, 0, 1], distance=[2.0, 2.0, 4.0, 2.0],
+                      baseline_success=[0, 1, 0, 0]) for s in (0, 1)]
+    pooled = pool.main(pool.PoolConfig(runs=tuple(runs), pair=("caps", "gc_dql")))
+    success = pooled["pair"]["metrics"]["success_rate"]
+    assert success["difference"]["mean"] == pytest.approx(0.5)  # 6 of 8 against 2 of 8
+    assert success["relative"]["mean"] == pytest.approx(2.0)  # three times the baseline's rate
+    distance = pooled["pair"]["metrics"]["path_distance_mean"]["relative"]
+    assert distance["mean"] == pytest.approx(2.5 / 1.0 - 1)
+    with pytest.raises(ValueError, match="pair: method 'dql'"):
+        pool.main(pool.PoolConfig(runs=tuple(runs), pair=("caps", "dql")))
+
+
 def test_load_run_names_what_is_missing(tmp_path):
     with pytest.raises(FileNotFoundError, match="no metrics.json"):
         pool.load_run(tmp_path)
