@@ -30,8 +30,10 @@ import tyro
 
 from experiments import pipeline, report
 
-# Fields that must agree for episodes of several runs to be pooled into one sample of one setting.
-POOL_KEYS = ("experiment", "preset", "split", "train_seed")
+# Fields that must agree for episodes of several runs to be pooled into one sample of one setting.  The
+# preset is compared by its settings (config.json) where both runs stored them, so that a variant evaluated
+# under a scratch name pools with the same settings run under the preset's own name.
+POOL_KEYS = ("experiment", "split", "train_seed")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +57,7 @@ class Run:
     path: Path
     metrics: dict  # the run's metrics.json
     env_overrides: str | None  # from config.json, when the run wrote one
+    preset_settings: dict | None  # the Preset's fields, from config.json
 
     @property
     def seed(self) -> int:
@@ -68,13 +71,16 @@ def load_run(path: Path) -> Run:
     if not file.is_file():
         raise FileNotFoundError(f"run folder {path}: no metrics.json (expected the folder an experiment run wrote)")
     metrics = json.loads(file.read_text())
-    missing = [k for k in (*POOL_KEYS, "seed", "per_episode") if k not in metrics]
+    missing = [k for k in (*POOL_KEYS, "preset", "seed", "per_episode") if k not in metrics]
     if missing:
         raise ValueError(f"{file}: missing field(s) {missing}; runs written before per-episode results were "
                          "stored cannot be pooled")
     config = path / "config.json"
-    overrides = json.loads(config.read_text()).get("env_overrides") if config.is_file() else None
-    return Run(path, metrics, None if overrides is None else json.dumps(overrides, sort_keys=True))
+    stored = json.loads(config.read_text()) if config.is_file() else {}
+    overrides = stored.get("env_overrides")
+    settings = stored.get("preset")
+    return Run(path, metrics, None if overrides is None else json.dumps(overrides, sort_keys=True),
+               settings if isinstance(settings, dict) else None)
 
 
 def _require_same(runs: Sequence[Run], keys: Sequence[str], what: str) -> None:
@@ -87,6 +93,22 @@ def _require_same(runs: Sequence[Run], keys: Sequence[str], what: str) -> None:
     if len(overrides) > 1:
         raise ValueError(f"{what}: field 'env_overrides' in config.json differs between runs ({sorted(overrides)}); "
                          "their tasks are not the same kind")
+
+
+def _require_same_preset(runs: Sequence[Run], what: str) -> None:
+    """One preset: the same settings where the runs stored them, else the same name.  A field that only one
+    run has was added to ``Preset`` later, with a default that keeps the older runs' behaviour."""
+    first = runs[0]
+    for run in runs[1:]:
+        if first.preset_settings is not None and run.preset_settings is not None:
+            differ = sorted(k for k in first.preset_settings.keys() & run.preset_settings.keys()
+                            if first.preset_settings[k] != run.preset_settings[k])
+            if differ:
+                raise ValueError(f"{what}: field 'preset' settings {differ} differ between {first.path} and {run.path}; "
+                                 "expected runs of one preset")
+        elif first.metrics["preset"] != run.metrics["preset"]:
+            raise ValueError(f"{what}: field 'preset' differs ({first.path}: {first.metrics['preset']!r}, "
+                             f"{run.path}: {run.metrics['preset']!r}); expected one preset")
 
 
 def _require_distinct_seeds(runs: Sequence[Run], what: str) -> None:
@@ -118,6 +140,7 @@ def pool(runs: Sequence[Run]) -> dict:
     if not runs:
         raise ValueError("runs: expected at least one run folder")
     _require_same(runs, POOL_KEYS, "pooling")
+    _require_same_preset(runs, "pooling")
     _require_distinct_seeds(runs, "pooling")
     per_episode = pooled_episodes(runs)
     metrics = {m: report.summarize(v) for m, v in per_episode.items()}
@@ -125,6 +148,7 @@ def pool(runs: Sequence[Run]) -> dict:
     exp = experiment(first["experiment"])
     return {
         **{k: first[k] for k in POOL_KEYS},
+        "preset": first["preset"],
         "seeds": sorted(r.seed for r in runs),
         "runs": [str(r.path) for r in sorted(runs, key=lambda r: r.seed)],
         "metrics": metrics,
@@ -139,6 +163,7 @@ def paired_differences(runs: Sequence[Run], against: Sequence[Run]) -> dict[str,
     for group, what in ((runs, "runs"), (against, "against")):
         if not group:
             raise ValueError(f"{what}: expected at least one run folder")
+        _require_same_preset(group, what)
         _require_distinct_seeds(group, what)
     _require_same([*runs, *against], ("experiment", "split"), "paired comparison")
     seeds_a, seeds_b = sorted(r.seed for r in runs), sorted(r.seed for r in against)

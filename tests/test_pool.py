@@ -8,7 +8,7 @@ from experiments import pool
 
 
 def write_run(folder, *, seed, success, distance, preset="small", split="val", experiment="forest",
-              baseline_success=None, env_overrides=None):
+              baseline_success=None, env_overrides=None, settings=None):
     folder.mkdir(parents=True)
     per_episode = {"caps": {"success_rate": [float(x) for x in success],
                             "path_distance_mean": [float(x) for x in distance]}}
@@ -18,8 +18,8 @@ def write_run(folder, *, seed, success, distance, preset="small", split="val", e
     metrics = {"experiment": experiment, "preset": preset, "seed": seed, "split": split, "train_seed": 0,
                "paper": {"caps": {"success_rate": 0.75}}, "per_episode": per_episode}
     (folder / "metrics.json").write_text(json.dumps(metrics))
-    if env_overrides is not None:
-        (folder / "config.json").write_text(json.dumps({"env_overrides": env_overrides}))
+    if env_overrides is not None or settings is not None:
+        (folder / "config.json").write_text(json.dumps({"env_overrides": env_overrides or {}, "preset": settings}))
     return folder
 
 
@@ -67,6 +67,17 @@ def test_pool_refuses_runs_of_different_settings(tmp_path, change, message):
     b = write_run(tmp_path / "b", **{**dict(seed=1, success=[0], distance=[1.0], env_overrides={}), **change})
     with pytest.raises(ValueError, match=message):
         pool.pool([pool.load_run(a), pool.load_run(b)])
+
+
+def test_pool_compares_preset_settings_not_names(tmp_path):
+    a = write_run(tmp_path / "a", seed=0, success=[1], distance=[1.0], preset="small", settings={"cem": [1024, 32]})
+    # The same settings evaluated under a scratch name, stored before the field 'mirror' existed: they pool.
+    b = write_run(tmp_path / "b", seed=1, success=[0], distance=[1.0], preset="scratch",
+                  settings={"cem": [1024, 32], "mirror": True})
+    assert pool.pool([pool.load_run(a), pool.load_run(b)])["metrics"]["caps"]["success_rate"]["n"] == 2
+    c = write_run(tmp_path / "c", seed=2, success=[0], distance=[1.0], preset="small", settings={"cem": [1024, 64]})
+    with pytest.raises(ValueError, match=r"field 'preset' settings \['cem'\] differ"):
+        pool.pool([pool.load_run(a), pool.load_run(c)])
 
 
 def test_paired_difference_needs_the_same_tasks(tmp_path):
