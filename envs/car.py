@@ -107,6 +107,15 @@ class CarConfig:
         """Radius of the chassis footprint's bounding circle."""
         return math.hypot(self.half_length, self.half_width)
 
+    def turning_radius(self, steer_deg: float) -> float:
+        """Radius (m) of the circle the car's centre drives at a steering angle, slip-free (the kinematic
+        bicycle: the rear axle turns on wheelbase / tan(steer), and the centre lies ``rear_axle`` ahead of it).
+        1.80 m at the plan box's 30 degrees; the simulated car at low speed drives it within a few percent."""
+        if not 0 < steer_deg < 90:
+            raise ValueError(f"steer_deg must be in (0, 90) degrees, got {steer_deg}")
+        rear = (self.front_axle + self.rear_axle) / math.tan(math.radians(steer_deg))
+        return math.hypot(rear, self.rear_axle)
+
     def reach(self, speed: jax.Array) -> jax.Array:
         """How far from its centre the chassis can touch something within one control step."""
         v = jnp.minimum(jnp.abs(speed) + self.max_accel * base.CONTROL_DT, self.max_speed)

@@ -174,6 +174,10 @@ class Experiment:
     primary_metric: str  # what "beats the baselines" is judged on
     notes: tuple[str, ...] = ()
     segmenter: Callable | None = None  # env -> labellers.SegmenterConfig
+    # (tasks, env, one method's per-episode metrics) -> more {metric: f32[E]} that depend on the tasks too (the
+    # forest's success on the paths the car can drive).  Applied after the evaluation cache, so stored
+    # evaluations gain them without being re-run.
+    task_metrics: Callable | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -512,6 +516,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         cached = _load_eval(cache, key)
         if cached is not None:
             poses[method.name], per_episode[method.name] = cached
+            per_episode[method.name].update(task_metrics(exp, tasks, env, per_episode[method.name]))
             log(exp, f"eval {method.name}: reused {cache}")
             continue
         spec = method_spec(method, model)
@@ -523,6 +528,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         poses[method.name] = np.asarray(traj.pose)
         per_episode[method.name] = {k: np.asarray(v) for k, v in exp.episode_metrics(traj, env).items()}
         _save_eval(cache, key, poses[method.name], per_episode[method.name])
+        per_episode[method.name].update(task_metrics(exp, tasks, env, per_episode[method.name]))
         timings[f"eval_{method.name}_s"] = time.time() - t
         log(exp, f"eval {method.name}: " + ", ".join(f"{k} {np.mean(v):.3f}" for k, v in per_episode[method.name].items())
             + f" ({timings[f'eval_{method.name}_s']:.0f} s)")
@@ -551,6 +557,12 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     print((run_dir / "table.md").read_text())
     log(exp, f"wrote {run_dir}")
     return out
+
+
+def task_metrics(exp: Experiment, tasks, env, per_episode: dict) -> dict:
+    if exp.task_metrics is None:
+        return {}
+    return {k: np.asarray(v) for k, v in exp.task_metrics(tasks, env, per_episode).items()}
 
 
 def method_spec(method: Method, model) -> RewardSpec:

@@ -70,10 +70,23 @@ def separated(a: dict, b: dict, higher_is_better: bool = True) -> bool:
 
 
 def write_json(path: Path, obj) -> None:
+    """Strict JSON (a NaN or infinity, e.g. a metric with no episode to average, is written as null)."""
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
+    tmp.write_text(json.dumps(_strict(obj), indent=2, default=_json_default, allow_nan=False))
     tmp.replace(path)  # atomic: an interrupted run never leaves half a file
+
+
+def _strict(x):
+    if isinstance(x, np.ndarray):
+        x = x.tolist()
+    if isinstance(x, Mapping):
+        return {k: _strict(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_strict(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    return x
 
 
 def _json_default(x):

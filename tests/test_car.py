@@ -69,9 +69,9 @@ def test_constant_steer_gives_the_kinematic_circle(drive):
     (a, b, c), *_ = np.linalg.lstsq(design, (xy**2).sum(1), rcond=None)
     radius = math.sqrt(c + a * a + b * b)
     # Kinematic bicycle: the rear axle turns on L / tan(delta); the centre lies half a wheelbase ahead.
-    wheelbase = CFG.front_axle + CFG.rear_axle
-    rear = wheelbase / math.tan(math.radians(steer))
-    expected = math.hypot(rear, CFG.rear_axle)
+    expected = CFG.turning_radius(steer)
+    assert expected == pytest.approx(math.hypot((CFG.front_axle + CFG.rear_axle) / math.tan(math.radians(steer)),
+                                                CFG.rear_axle))
     assert abs(radius - expected) / expected < 0.05
     assert np.all(np.diff(np.unwrap(qpos[:, 2])) > 0)  # positive steer turns left (CCW)
     assert not collision.any()

@@ -43,6 +43,27 @@ def test_relative_change_ci_resamples_pairs_together():
         report.relative_change_ci([1.0, 2.0], [1.0])
 
 
+def test_forest_success_on_drivable_paths_leaves_out_the_tight_bends():
+    from envs.scenes.forest import ForestConfig
+
+    t = np.linspace(0.0, 2 * np.pi, 64)
+    circle = np.stack([3.0 * np.cos(t), 3.0 * np.sin(t)], -1)  # radius 3 m: the car (1.8 m) can follow it
+    u = np.linspace(-9.5, 9.5, 64)
+    tight = np.stack([u, 3.0 * np.sin(2 * np.pi * u / 8.0)], -1)  # crests of radius 0.54 m
+    tasks = types.SimpleNamespace(path=jnp.asarray(np.stack([circle, tight, circle]), jnp.float32))
+    env = types.SimpleNamespace(config=ForestConfig())
+    out = forest.task_metrics(tasks, env, {"success_rate": np.array([1.0, 1.0, 0.0])})
+    np.testing.assert_allclose(out["sharpest_bend_m"][[0, 2]], 3.0, rtol=1e-3)
+    assert out["sharpest_bend_m"][1] < 0.7  # sampled every 0.3 m, the polyline's crest is a little wider
+    assert out["success_drivable"][0] == 1.0 and np.isnan(out["success_drivable"][1]) and out["success_drivable"][2] == 0.0
+    assert report.mean_ci(out["success_drivable"])["n"] == 2  # the tight path counts in neither direction
+
+
+def test_write_json_is_strict(tmp_path):
+    report.write_json(tmp_path / "m.json", {"a": np.array([1.0, np.nan]), "b": float("inf"), "c": (np.float32(2.5),)})
+    assert json.loads((tmp_path / "m.json").read_text()) == {"a": [1.0, None], "b": None, "c": [2.5]}
+
+
 def test_separated_needs_clear_intervals():
     a = report.mean_ci([1.0] * 10)
     b = report.mean_ci([0.0] * 10)

@@ -226,6 +226,18 @@ def test_windowed_projection_follows_a_car_cutting_a_corner():
     assert float(s) == pytest.approx(12.0) and float(d) == pytest.approx(np.hypot(3.0, 0.5), rel=1e-5)
 
 
+def test_sharpest_bend_is_the_tightest_circle_through_the_path():
+    from envs.scenes.common import sharpest_bend
+
+    t = jnp.linspace(0.0, 2 * jnp.pi, 64)
+    assert float(sharpest_bend(jnp.stack([3.0 * jnp.cos(t), 3.0 * jnp.sin(t)], -1))) == pytest.approx(3.0, rel=1e-3)
+    u = jnp.linspace(-9.5, 9.5, 64)
+    amplitude, wavelength = 2.0, 10.0  # y = A sin(2 pi x / L) bends tightest at its crests: L^2 / (4 pi^2 A)
+    sine = jnp.stack([u, amplitude * jnp.sin(2 * jnp.pi * u / wavelength)], -1)
+    assert float(sharpest_bend(sine)) == pytest.approx(wavelength**2 / (4 * np.pi**2 * amplitude), rel=0.05)
+    assert float(sharpest_bend(jnp.stack([u, 0.5 * u], -1))) > 1e3  # straight
+
+
 def test_halls_car_is_rc_sized_and_can_turn_inside_a_hallway():
     """The halls use the paper's RC-car scale: at the planner's steering limit the car's turning circle,
     swept by its whole footprint, fits in half a hallway (the 2 m car's did not fit in 4 m corridors)."""

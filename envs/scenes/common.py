@@ -186,6 +186,15 @@ def polyline_lengths(path: jax.Array) -> jax.Array:
     return jnp.concatenate([jnp.zeros((1,), path.dtype), jnp.cumsum(seg)])
 
 
+def sharpest_bend(path: jax.Array) -> jax.Array:
+    """f32: the smallest radius (m) of the circle through three consecutive vertices of a polyline f32[P, 2]
+    (P >= 3); a straight polyline gives a huge radius.  How tightly a path asks the car to turn."""
+    a, b, c = path[:-2], path[1:-1], path[2:]
+    sides = (jnp.linalg.norm(b - a, axis=-1) * jnp.linalg.norm(c - b, axis=-1) * jnp.linalg.norm(a - c, axis=-1))
+    twice_area = jnp.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
+    return jnp.min(sides / jnp.maximum(2.0 * twice_area, 1e-12))  # circumradius = abc / (4 * area)
+
+
 def project_on_path(path: jax.Array, xy: jax.Array, s_min=-jnp.inf, s_max=jnp.inf):
     """Nearest point of the polyline to ``xy`` among arc lengths in [s_min, s_max].
 
