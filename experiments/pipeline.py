@@ -530,7 +530,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         _save_eval(cache, key, poses[method.name], per_episode[method.name])
         per_episode[method.name].update(task_metrics(exp, tasks, env, per_episode[method.name]))
         timings[f"eval_{method.name}_s"] = time.time() - t
-        log(exp, f"eval {method.name}: " + ", ".join(f"{k} {np.mean(v):.3f}" for k, v in per_episode[method.name].items())
+        log(exp, f"eval {method.name}: " + ", ".join(f"{k} {np.nanmean(v):.3f}" for k, v in per_episode[method.name].items())
             + f" ({timings[f'eval_{method.name}_s']:.0f} s)")
 
     metrics = {name: report.summarize(values) for name, values in per_episode.items()}
