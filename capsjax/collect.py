@@ -294,6 +294,13 @@ def _flatten(record: Record) -> dict:
     return out
 
 
+def _what_is_stored(settings: dict) -> dict:
+    """An env's spec or config without its observation ``history``: one frame is stored per step, so the history
+    length does not change what is stored (``make_sampler`` draws any history), and a dataset is reused across
+    it.  Datasets of older versions, whose env config had no history field, stay usable."""
+    return {k: v for k, v in settings.items() if k != "history"}
+
+
 def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_steps: int, num_robots: int,
             key: jax.Array, labelled_fraction: float = 0.002, steps_per_chunk: int = 64, split: str = "train",
             task_sampler: Callable | None = None, episode_length: int | None = 200,
@@ -341,8 +348,11 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
 
     if os.path.exists(path):
         ds = Dataset.open(path, "a")
-        for field, have, want in (("env_name", ds.env_name, env_name), ("spec", _jsonable(ds.spec), _jsonable(env.spec)),
-                                  ("env_config", ds.env_config, env_config), ("policy", ds.policy, _jsonable(policy_name))):
+        stored = _what_is_stored
+        for field, have, want in (("env_name", ds.env_name, env_name),
+                                  ("spec", stored(_jsonable(ds.spec)), stored(_jsonable(env.spec))),
+                                  ("env_config", stored(ds.env_config), stored(env_config)),
+                                  ("policy", ds.policy, _jsonable(policy_name))):
             if have != want:
                 raise ValueError(f"the dataset at {path!r} has {field} {have!r}; this collection has {want!r} "
                                  f"(a stored dataset is appended to or reused only with the same {field}; collect into another path)")

@@ -719,7 +719,7 @@ MIRROR_SIGNS = {"collision": 1.0, "speed": 1.0, "door_frac": 1.0, "x": 1.0, "hea
 def make_sampler(ds: Dataset, *, horizon: int, episodes=None, label_sources: dict[str, str] | None = None,
                  plan_low=None, plan_high=None, signals: tuple[str, ...] | None = None,
                  max_bytes: int = 8 << 30, mirror: bool = False,
-                 mirror_signs: dict[str, float] | None = None) -> WindowSampler:
+                 mirror_signs: dict[str, float] | None = None, history: int | None = None) -> WindowSampler:
     """Load ``episodes`` (default: all committed) into a ``WindowSampler`` on the default device.
 
     ``signals`` (default: the spec's) are the ground-truth cues; ``label_sources`` maps a cue to a label
@@ -733,10 +733,17 @@ def make_sampler(ds: Dataset, *, horizon: int, episodes=None, label_sources: dic
     (driving among obstacles, heading commands; not right-hand traffic).  ``mirror_signs`` (default
     ``MIRROR_SIGNS``) says how each vector key, action name and signal changes; a name it lacks is
     refused, never guessed.
+
+    ``history`` (default: the spec's) is how many frames, oldest first, each window's observation stacks.
+    The dataset stores one frame per step, so any history can be drawn from it: a model with a longer
+    memory than the collecting env's trains on the same dataset.
     """
     horizon = int(horizon)
     if horizon < 1:
         raise ValueError(f"horizon must be >= 1, got {horizon}")
+    history = ds.spec.history if history is None else int(history)
+    if history < 1:
+        raise ValueError(f"history must be >= 1 frame, got {history}")
     if ds.num_episodes == 0:
         raise ValueError(f"dataset {ds.path!r} is empty (num_episodes=0); expected at least one committed episode")
     ids = np.arange(ds.num_episodes) if episodes is None else np.unique(np.asarray(episodes, np.int64))
@@ -828,6 +835,6 @@ def make_sampler(ds: Dataset, *, horizon: int, episodes=None, label_sources: dic
         action=jnp.asarray(loaded["action"]), pose=jnp.asarray(loaded["pose"]),
         signals={k: jnp.asarray(v) for k, v in signal_arrays.items()},
         episode_start=jnp.asarray(ep_start), episode_end=jnp.asarray(ep_end), starts=jnp.asarray(window_starts),
-        plan_low=jnp.asarray(low), plan_high=jnp.asarray(high), horizon=horizon, history=spec.history,
+        plan_low=jnp.asarray(low), plan_high=jnp.asarray(high), horizon=horizon, history=history,
         **mirror_fields,
     )

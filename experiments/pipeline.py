@@ -474,7 +474,8 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     label_sources = {cue: "segmenter" for cue in exp.learned_cues}
     needed = sorted({c.source for c in exp.cues} | {"collision", "speed", "heading"})
     sampler = data.make_sampler(ds, horizon=preset.horizon, episodes=train_ids, label_sources=label_sources,
-                                signals=tuple(s for s in needed if s not in label_sources), mirror=preset.mirror)
+                                signals=tuple(s for s in needed if s not in label_sources), mirror=preset.mirror,
+                                history=env.spec.history)
     methods = [m for m in exp.methods if not cfg.methods or m.name in cfg.methods]
     params = {}
     t = time.time()
@@ -491,7 +492,8 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         on_train, _ = ds_on.split_episodes(HOLDOUT_FRACTION, seed=cfg.train_seed)
         sampler = data.concatenate_samplers(sampler, data.make_sampler(
             ds_on, horizon=preset.horizon, episodes=on_train, label_sources=label_sources,
-            signals=tuple(s for s in needed if s not in label_sources), mirror=preset.mirror))
+            signals=tuple(s for s in needed if s not in label_sources), mirror=preset.mirror,
+            history=env.spec.history))
         timings["collect_onpolicy_s"] = time.time() - t
         t = time.time()
         caps_state = train_caps(exp, preset, model, sampler, data_dir, cfg, name="caps_onpolicy", state=caps_state,
@@ -584,7 +586,8 @@ def holdout_losses(model, params, ds, holdout_ids, preset: Preset, label_sources
         return {}
     try:
         sampler = data.make_sampler(ds, horizon=preset.horizon, episodes=holdout_ids, label_sources=label_sources,
-                                    signals=tuple(s for s in needed if s not in label_sources))
+                                    signals=tuple(s for s in needed if s not in label_sources),
+                                    history=model.config.history)
     except ValueError as e:  # e.g. every held-out episode shorter than the horizon
         return {"error": str(e)}
     batch = jax.jit(lambda s, k: s.sample(k, 256))(sampler, jax.random.key(7))  # buffers as an argument
@@ -631,9 +634,12 @@ def eval_cache_key(method: Method, preset: Preset, data_dir: Path, split: str, e
     """What a stored evaluation depends on: the method, the preset, the data folder, the split, the env's
     config and the trained params themselves (a digest of their bytes), so a retrained model or a changed
     world is evaluated again rather than read back.  Code changes are not in it: evaluate into a new
-    ``--out`` after changing the planner or the env's code."""
+    ``--out`` after changing the planner or the env's code.  The env's observation ``history`` is left out:
+    a model of another history has other parameter shapes, so the params digest already tells them apart,
+    and evaluations stored before the field existed stay valid."""
+    env_config = {k: v for k, v in dataclasses.asdict(env.config).items() if k != "history"}
     return json.dumps({"method": dataclasses.asdict(method), "preset": dataclasses.asdict(preset),
-                       "data_dir": str(data_dir), "env": dataclasses.asdict(env.config),
+                       "data_dir": str(data_dir), "env": env_config,
                        "params_sha256": params_digest(params), "split": split},
                       sort_keys=True, default=str)
 

@@ -161,6 +161,16 @@ def test_forest_collection_stores_semantic_maps_of_the_labelled_frames(tmp_path)
     image, sem, _ = render(env.layout(task), jnp.asarray(pose), env.config.camera)
     np.testing.assert_array_equal(semantic[0], sem)
     np.testing.assert_array_equal(images[0], image)  # the stored frame is the one at the stored pose
+    # One frame per step is stored, so an env whose observation keeps a longer history reuses the dataset
+    # (nothing recollected), and the sampler stacks that history from it.
+    longer = envs.make("forest", history=8)
+    again = collect.collect(longer, collect.random_policy(longer.spec), None, None, path=ds.path, num_steps=300,
+                            num_robots=4, key=jax.random.key(0), labelled_fraction=0.05, steps_per_chunk=16,
+                            episode_length=40, progress=False)
+    assert again.num_steps == ds.num_steps
+    sampler = data.make_sampler(again, horizon=4, history=longer.spec.history)
+    batch = jax.jit(data.WindowSampler.sample, static_argnums=2)(sampler, jax.random.key(0), 8)
+    assert batch.obs.images.shape == (8, 8) + env.spec.image_shape
 
 
 COLLECTOR = textwrap.dedent("""

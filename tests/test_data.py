@@ -168,6 +168,20 @@ def test_windows_follow_the_paper_done_handling(tmp_path):
     np.testing.assert_array_equal(batch.context["final_xy"][2], [10, 20])
 
 
+def test_windows_stack_any_history_from_the_stored_frames(tmp_path):
+    # One frame is stored per step, so a model with a longer memory than the collecting env's (history 4 in
+    # SPEC) trains on the same dataset: frames t-5..t, zeros before the episode start.
+    ds = make_dataset(tmp_path / "d.zarr", [6, 5], crash=[True, False])
+    sampler = data.make_sampler(ds, horizon=4, history=6)
+    batch = WINDOWS(sampler, jnp.array([3, 8]), jax.random.key(0))
+    assert batch.obs.images.shape == (2, 6, 4, 6, 1) and batch.obs.vector.shape == (2, 6, 3)
+    np.testing.assert_array_equal(batch.obs.vector[0, :, 1], [0, 0, 0, 1, 2, 3])
+    np.testing.assert_array_equal(batch.obs.images[1, :, 0, 0, 0], [0, 0, 0, 6, 7, 8])
+    np.testing.assert_array_equal(batch.next_obs.vector[1, :, 1], [0, 0, 6, 7, 8, 9])
+    with pytest.raises(ValueError, match="history must be >= 1"):
+        data.make_sampler(ds, horizon=4, history=0)
+
+
 def test_mirrored_windows_flip_frames_and_negate_what_the_mirror_negates(tmp_path):
     ds = make_dataset(tmp_path / "d.zarr", [6, 5], crash=[True, False])
     # Frames that are not left-right symmetric: column j of step s holds (s + 10 j) % 251.

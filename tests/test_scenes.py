@@ -161,6 +161,11 @@ def test_unknown_names_and_fields():
         envs.make("jungle")
     with pytest.raises(ValueError, match="arena_half"):
         envs.make("forest", arena_size=30.0)
+    with pytest.raises(ValueError, match="history must be >= 1"):
+        envs.make("forest", history=0)
+    longer = envs.make("forest", history=8)  # the observation's memory is a config field (trace only)
+    state = jax.eval_shape(longer.reset, jax.random.key(0), longer.sample_task(jax.random.key(0)))
+    assert state.obs.images.shape == (8,) + longer.spec.image_shape and state.obs.vector.shape == (8, 3)
 
 
 @pytest.mark.parametrize("name", envs.SCENES)

@@ -49,8 +49,11 @@ class SceneConfig:
     plan_speed: tuple[float, float] = (0.5, 3.0)
     fixed_speed: float | None = None  # steering-only robot at this speed (A = 1)
     lookahead: float = 2.0  # m: the goal heading is the task's direction this far ahead of the car
+    history: int = 4  # frames (camera and vector) the observation carries, oldest first: the paper's 4 (1 s)
 
     def __post_init__(self):
+        if self.history < 1:
+            raise ValueError(f"history must be >= 1 frame, got {self.history}")
         if not 0 < self.plan_steer_deg <= self.steer_limit_deg:
             raise ValueError(f"need 0 < plan_steer_deg <= steer_limit_deg, got {self.plan_steer_deg}, "
                              f"{self.steer_limit_deg}")
@@ -85,6 +88,7 @@ class SceneEnv(base.Env, abc.ABC):
             plan_low=plan_low,
             plan_high=plan_high,
             signal_names=("collision", "speed", "heading") + self.extra_signals,
+            history=cfg.history,
         )
 
     # ---------------------------------------------------------------- what a scene defines
