@@ -7,7 +7,8 @@ seed's interval is wide.  This pools the per-episode results that every run stor
 
 writes ``metrics.json`` and ``table.md`` over all their episodes (intervals recomputed over the pooled
 episodes, the baselines comparison redone).  With ``--against`` it compares two variants evaluated on the same
-tasks (same experiment, split and seeds: a planner or reward setting chosen on 'val', say):
+tasks (same experiment, split and seeds, and where the runs stored their poses the same start in every
+episode; the variants may differ in any setting: a planner, reward or model memory chosen on 'val', say):
 
     python -m experiments.pool results/forest/a_val_seed0 results/forest/a_val_seed1 \\
         --against results/forest/b_val_seed0 results/forest/b_val_seed1
@@ -89,6 +90,10 @@ def _require_same(runs: Sequence[Run], keys: Sequence[str], what: str) -> None:
         if len(values) > 1:
             detail = ", ".join(f"{r.path}: {r.metrics[key]!r}" for r in runs)
             raise ValueError(f"{what}: field '{key}' differs between runs ({detail}); expected one value")
+    _require_same_env(runs, what)
+
+
+def _require_same_env(runs: Sequence[Run], what: str) -> None:
     overrides = {r.env_overrides for r in runs if r.env_overrides is not None}
     if len(overrides) > 1:
         raise ValueError(f"{what}: field 'env_overrides' in config.json differs between runs ({sorted(overrides)}); "
@@ -158,6 +163,34 @@ def pool(runs: Sequence[Run]) -> dict:
     }
 
 
+# The stored trajectories begin after the first control step, which moves the car at most ~0.75 m (3 m/s for
+# 0.25 s): episodes of one task start within this distance of each other, those of different tasks metres apart.
+SAME_START_M = 1.0
+
+
+def start_positions(run: Run) -> np.ndarray | None:
+    """Every episode's first recorded position ``f32[E, 2]``, from the run's stored evaluations
+    (``eval/<method>.npz``; every method of a run drives the same tasks), or None where it stored none."""
+    for file in sorted((run.path / "eval").glob("*.npz")):
+        with np.load(file) as stored:
+            if "pose" in stored.files:
+                return np.asarray(stored["pose"][:, 0, :2])
+    return None
+
+
+def _require_same_tasks(runs: Sequence[Run], against: Sequence[Run]) -> None:
+    """Two variants may differ in any setting, an env setting that leaves the tasks alone included (the
+    observation's history, say), as long as they ran the same tasks: each episode must start at the same place
+    in both.  Where a run stored no poses, both must have the same env overrides instead."""
+    for a, b in zip(sorted(runs, key=lambda r: r.seed), sorted(against, key=lambda r: r.seed)):
+        pos_a, pos_b = start_positions(a), start_positions(b)
+        if pos_a is None or pos_b is None:
+            _require_same_env([a, b], "paired comparison")
+        elif pos_a.shape != pos_b.shape or np.max(np.linalg.norm(pos_a - pos_b, axis=-1)) > SAME_START_M:
+            raise ValueError(f"against: the episodes of {b.path} do not start where those of {a.path} do (seed {a.seed}); "
+                             "expected the same tasks (an env setting that changes the tasks differs between them?)")
+
+
 def paired_differences(runs: Sequence[Run], against: Sequence[Run]) -> dict[str, dict[str, dict]]:
     """``{method: {metric: mean_ci(runs - against)}}`` over episodes paired by (seed, episode index)."""
     for group, what in ((runs, "runs"), (against, "against")):
@@ -165,10 +198,14 @@ def paired_differences(runs: Sequence[Run], against: Sequence[Run]) -> dict[str,
             raise ValueError(f"{what}: expected at least one run folder")
         _require_same_preset(group, what)
         _require_distinct_seeds(group, what)
-    _require_same([*runs, *against], ("experiment", "split"), "paired comparison")
+        _require_same_env(group, what)
+    for key in ("experiment", "split"):
+        if len({json.dumps(r.metrics[key]) for r in [*runs, *against]}) > 1:
+            raise ValueError(f"paired comparison: field '{key}' differs between the runs and --against; expected one value")
     seeds_a, seeds_b = sorted(r.seed for r in runs), sorted(r.seed for r in against)
     if seeds_a != seeds_b:
         raise ValueError(f"against: field 'seed' must match the runs' seeds {seeds_a} (the same tasks), got {seeds_b}")
+    _require_same_tasks(runs, against)
     a, b = pooled_episodes(runs), pooled_episodes(against)
     out = {}
     for method in (m for m in a if m in b):

@@ -8,8 +8,12 @@ from experiments import pool
 
 
 def write_run(folder, *, seed, success, distance, preset="small", split="val", experiment="forest",
-              baseline_success=None, env_overrides=None, settings=None):
+              baseline_success=None, env_overrides=None, settings=None, starts=None):
     folder.mkdir(parents=True)
+    if starts is not None:  # the stored evaluation's poses: [E, T, 3], each episode from its start
+        (folder / "eval").mkdir()
+        pose = np.repeat(np.asarray(starts, np.float32)[:, None, :], 3, axis=1)
+        np.savez(folder / "eval" / "caps.npz", key="k", pose=pose)
     per_episode = {"caps": {"success_rate": [float(x) for x in success],
                             "path_distance_mean": [float(x) for x in distance]}}
     if baseline_success is not None:
@@ -88,6 +92,25 @@ def test_paired_difference_needs_the_same_tasks(tmp_path):
         pool.paired_differences([pool.load_run(a)], [pool.load_run(other_seed)])
     with pytest.raises(ValueError, match="expected the same episodes"):
         pool.paired_differences([pool.load_run(a)], [pool.load_run(fewer)])
+
+
+def test_paired_variants_may_differ_in_env_settings_but_not_in_tasks(tmp_path):
+    starts = [[1.0, 2.0, 0.0], [-3.0, 4.0, 1.0]]
+    a = write_run(tmp_path / "a", seed=0, success=[1, 1], distance=[1.0, 1.0], env_overrides={}, starts=starts)
+    # Another observation history on the same tasks: its first recorded poses differ by less than one step.
+    nearby = np.asarray(starts) + [0.3, -0.2, 0.1]
+    b = write_run(tmp_path / "b", seed=0, success=[0, 1], distance=[1.0, 1.0], env_overrides={"history": 8},
+                  starts=nearby)
+    diff = pool.paired_differences([pool.load_run(a)], [pool.load_run(b)])
+    assert diff["caps"]["success_rate"]["mean"] == pytest.approx(0.5)
+    elsewhere = write_run(tmp_path / "c", seed=0, success=[0, 1], distance=[1.0, 1.0],
+                          env_overrides={"arena_half": 20.0}, starts=np.asarray(starts) * 3)
+    with pytest.raises(ValueError, match="do not start where"):
+        pool.paired_differences([pool.load_run(a)], [pool.load_run(elsewhere)])
+    # Without stored poses the env overrides must agree, as for pooling.
+    no_poses = write_run(tmp_path / "d", seed=0, success=[0, 1], distance=[1.0, 1.0], env_overrides={"history": 8})
+    with pytest.raises(ValueError, match="field 'env_overrides'"):
+        pool.paired_differences([pool.load_run(a)], [pool.load_run(no_poses)])
 
 
 def test_pair_compares_two_methods_on_the_same_episodes(tmp_path):
