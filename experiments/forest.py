@@ -71,6 +71,10 @@ PRESETS = {
     # 0.105, at no cost in time.  The same settings without mirroring gave 64 % on 'val' on the host of
     # 2026-12-02: hosts differ by as much as settings do, so compare only runs of one host.  Measured
     # afterwards on 'eval' (README): 48 % mirrored vs 58 % unmirrored, 52 % each over 'val' and 'eval'.
+    # Tried on 'val' (2026-12-06, an AVX-512 host; rule: a paired success interval above zero) and not adopted:
+    # 8 frames of memory (env ``history=8``, retrained on the same dataset): 31 of 64 paths against 49, paired
+    # -28 points [-42, -14], held-out collision loss 0.126 against 0.102; the pursuit point 3 or 4 m ahead
+    # (env ``lookahead``, evaluation only): 83 of 128 each against 79, +3 points [-5, +12].
     "small": SMALL,
     # Four times `small`'s data and CAPs steps (three data steps per CAPs step, as in `small`): far over the
     # 30-minute budget (CAPs alone ~50 minutes on the 2-core CPU, ~2 hours with the baselines), hence a preset
