@@ -10,8 +10,8 @@ collision + heading + door (the paper's RC-car reward ``(1 - c) [1 - 0.1 |h - h_
 - 0.01 |a|^2``) -- beside DQL (collision only) and GC-DQL.  Metrics: % route traversed, % no crash, %
 successful turns, mean % of the image that is door.  The paper's reward once more with its door weight
 raised to ``DOOR_WEIGHT`` and to ``DOOR_WEIGHT_LOW``, and collision + heading with the heading weight raised
-to ``HEADING_WEIGHT`` (all chosen on the 'val' split, on two hosts whose models differ).  Beyond the paper (Q1): the same model told to
-*avoid* looking at doors (door weight ``-DOOR_WEIGHT``).
+to ``HEADING_WEIGHT`` (all chosen on the 'val' split, on two hosts whose models differ).  Beyond the paper
+(Q1): the same model told to *avoid* looking at doors (door weight ``-DOOR_WEIGHT``).
 
 Every preset mirrors half of the training windows left-right (``Preset.mirror``): the data go around the
 loop one way only, so without it right turns are rare in training while the evaluation makes them at every

@@ -84,13 +84,14 @@ def load_run(path: Path) -> Run:
                settings if isinstance(settings, dict) else None)
 
 
-def _require_same(runs: Sequence[Run], keys: Sequence[str], what: str) -> None:
+def _require_same(runs: Sequence[Run], keys: Sequence[str], what: str, *, env: bool = True) -> None:
     for key in keys:
         values = {json.dumps(r.metrics[key]) for r in runs}
         if len(values) > 1:
             detail = ", ".join(f"{r.path}: {r.metrics[key]!r}" for r in runs)
             raise ValueError(f"{what}: field '{key}' differs between runs ({detail}); expected one value")
-    _require_same_env(runs, what)
+    if env:
+        _require_same_env(runs, what)
 
 
 def _require_same_env(runs: Sequence[Run], what: str) -> None:
@@ -199,9 +200,7 @@ def paired_differences(runs: Sequence[Run], against: Sequence[Run]) -> dict[str,
         _require_same_preset(group, what)
         _require_distinct_seeds(group, what)
         _require_same_env(group, what)
-    for key in ("experiment", "split"):
-        if len({json.dumps(r.metrics[key]) for r in [*runs, *against]}) > 1:
-            raise ValueError(f"paired comparison: field '{key}' differs between the runs and --against; expected one value")
+    _require_same([*runs, *against], ("experiment", "split"), "paired comparison", env=False)  # tasks: below
     seeds_a, seeds_b = sorted(r.seed for r in runs), sorted(r.seed for r in against)
     if seeds_a != seeds_b:
         raise ValueError(f"against: field 'seed' must match the runs' seeds {seeds_a} (the same tasks), got {seeds_b}")
