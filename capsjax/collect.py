@@ -294,11 +294,22 @@ def _flatten(record: Record) -> dict:
     return out
 
 
-def _what_is_stored(settings: dict) -> dict:
-    """An env's spec or config without its observation ``history``: one frame is stored per step, so the history
-    length does not change what is stored (``make_sampler`` draws any history), and a dataset is reused across
-    it.  Datasets of older versions, whose env config had no history field, stay usable."""
-    return {k: v for k, v in settings.items() if k != "history"}
+# Env config fields added after datasets and evaluations were stored, keyed by their path in the config, with
+# the value every earlier config implicitly had: at that value they are left out of the comparison, so the
+# stored work of older versions stays valid, and any other value tells the configs apart.
+_ADDED_LATER = {("camera", "projection"): "pinhole"}
+
+
+def comparable_settings(settings: dict) -> dict:
+    """An env's spec or config as stored work is compared on: without its observation ``history`` (one frame is
+    stored per step, so the history length does not change what is stored -- ``make_sampler`` draws any history
+    -- and a dataset is reused across it), and without later-added fields at their old implicit values
+    (``_ADDED_LATER``).  Datasets of older versions, whose env config lacked those fields, stay usable."""
+    out = {k: v for k, v in settings.items() if k != "history"}
+    for (outer, inner), old in _ADDED_LATER.items():
+        if isinstance(out.get(outer), dict) and out[outer].get(inner, old) == old:
+            out[outer] = {k: v for k, v in out[outer].items() if k != inner}
+    return out
 
 
 def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_steps: int, num_robots: int,
@@ -348,7 +359,7 @@ def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_step
 
     if os.path.exists(path):
         ds = Dataset.open(path, "a")
-        stored = _what_is_stored
+        stored = comparable_settings
         for field, have, want in (("env_name", ds.env_name, env_name),
                                   ("spec", stored(_jsonable(ds.spec)), stored(_jsonable(env.spec))),
                                   ("env_config", stored(ds.env_config), stored(env_config)),

@@ -51,6 +51,7 @@ import numpy as np
 from envs.scene import CEILING, SCENE_GEOMGROUP, SKY, Scene
 
 _BIG = 1e30  # "no hit" distance inside the computation (finite, so products never make NaN)
+_PROJECTIONS = ("pinhole", "cylindrical")
 _GROUND, _CEIL = -1, -2  # per-pixel surface codes besides the candidate index 0..K-1
 _GATHER_PATCHES = 4  # more ground patches than this: per-pixel table look-ups instead of select chains
 
@@ -63,11 +64,18 @@ class CameraConfig:
     looks ``pitch_deg`` below the horizon (default: at the ground 6 m ahead of the car centre, the
     paper's forest camera, about 3.9 degrees).  Square pixels: the vertical field of view follows from
     ``hfov_deg`` and the aspect ratio.
+
+    ``projection``: "pinhole" (the paper's cameras; ``hfov_deg`` below 180) or "cylindrical" (columns
+    at equal angles, ``hfov_deg`` up to 360, e.g. a camera that sees beside the car; rows keep a
+    constant slope per horizontal metre, so vertical lines stay vertical and the renderer's one 2-D
+    ray per column stays exact).  Why offer it: a pinhole's centre pixels widen fast with the field
+    of view (3.1 degrees at 120, 6.7 at 150 for 64 columns), a cylinder's all share hfov / width.
     """
 
     width: int = 64
     height: int = 36
     hfov_deg: float = 120.0
+    projection: str = "pinhole"  # or "cylindrical" (see the class docstring)
     mount_height: float = 0.375
     mount_forward: float = 0.5
     pitch_deg: float = math.degrees(math.atan2(0.375, 5.5))
@@ -88,8 +96,11 @@ class CameraConfig:
     def __post_init__(self):
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera resolution must be positive, got {self.width}x{self.height}")
-        if not 0 < self.hfov_deg < 180:
-            raise ValueError(f"hfov_deg must be in (0, 180), got {self.hfov_deg}")
+        if self.projection not in _PROJECTIONS:
+            raise ValueError(f"projection must be one of {_PROJECTIONS}, got {self.projection!r}")
+        widest = 180 if self.projection == "pinhole" else 360
+        if not 0 < self.hfov_deg < widest:
+            raise ValueError(f"hfov_deg must be in (0, {widest}) for a {self.projection} camera, got {self.hfov_deg}")
         if self.max_hits < 1:
             raise ValueError(f"max_hits must be >= 1, got {self.max_hits}")
 
@@ -108,13 +119,28 @@ CITY_CAMERA = CameraConfig(width=100, height=50, grayscale=True)
 HALL_CAMERA = CameraConfig(width=128, height=96)
 
 
-def _image_coords(cfg: CameraConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised image-plane coordinates: x_j (right) per column and y_i (up) per row, focal length 1."""
-    ax = math.tan(math.radians(cfg.hfov_deg) / 2)
-    ay = ax * cfg.height / cfg.width
-    x = ax * (2 * (np.arange(cfg.width) + 0.5) / cfg.width - 1)
-    y = ay * (1 - 2 * (np.arange(cfg.height) + 0.5) / cfg.height) - math.tan(math.radians(cfg.pitch_deg))
-    return x.astype(np.float32), y.astype(np.float32)
+def _image_coords(cfg: CameraConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The camera's geometry in the car frame, as numpy constants.
+
+    Returns ``(forward, right, slope)``: per column the unit horizontal direction of its vertical
+    plane (components along the car's heading and to its right, [W] each), and per pixel the ray's
+    rise per horizontal metre ([H, W]).  Pinhole: image-plane coordinates x_j, y_i at focal length 1.
+    Cylindrical: column azimuths at equal steps, and each row's slope the same in every column.
+    """
+    half = math.radians(cfg.hfov_deg) / 2
+    u = 2 * (np.arange(cfg.width) + 0.5) / cfg.width - 1  # -1 .. 1, left to right
+    v = 1 - 2 * (np.arange(cfg.height) + 0.5) / cfg.height  # 1 .. -1, top to bottom
+    tilt = math.tan(math.radians(cfg.pitch_deg))
+    if cfg.projection == "pinhole":
+        ax = math.tan(half)
+        x, y = ax * u, ax * cfg.height / cfg.width * v - tilt
+        norm = np.sqrt(1 + x * x)
+        forward, right, slope = 1 / norm, x / norm, y[:, None] / norm[None, :]
+    else:  # square pixels at the image centre: a row's step in slope equals a column's step in angle
+        azimuth = half * u
+        forward, right = np.cos(azimuth), np.sin(azimuth)
+        slope = np.broadcast_to((half * cfg.height / cfg.width * v - tilt)[:, None], (cfg.height, cfg.width))
+    return forward.astype(np.float32), right.astype(np.float32), np.asarray(slope, np.float32)
 
 
 def camera_origin(pose: jax.Array, cfg: CameraConfig) -> jax.Array:
@@ -127,14 +153,14 @@ def camera_origin(pose: jax.Array, cfg: CameraConfig) -> jax.Array:
 
 def pixel_rays(pose: jax.Array, cfg: CameraConfig) -> tuple[jax.Array, jax.Array]:
     """The camera model: origin f32[3] and unit world direction f32[h, w, 3] of every pixel."""
-    x, y = _image_coords(cfg)
+    forward, right, slope = _image_coords(cfg)
     yaw = jnp.asarray(pose, jnp.float32)[2]
     c, s = jnp.cos(yaw), jnp.sin(yaw)
-    # Car frame: forward (1), left (-x), up (y); rotated by yaw into the world.
-    fx, fy = jnp.broadcast_to(1.0, x.shape), -x
+    # Car frame: forward, left (= -right), up (the slope per horizontal metre); rotated by yaw into the world.
+    fx, fy = forward, -right
     wx, wy = c * fx - s * fy, s * fx + c * fy
     d = jnp.stack([jnp.broadcast_to(wx, (cfg.height, cfg.width)), jnp.broadcast_to(wy, (cfg.height, cfg.width)),
-                   jnp.broadcast_to(y[:, None], (cfg.height, cfg.width))], -1)
+                   jnp.asarray(slope)], -1)
     return camera_origin(pose, cfg), d / jnp.linalg.norm(d, axis=-1, keepdims=True)
 
 
@@ -282,15 +308,13 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     are the ground paint's class and colour look-ups when a scene has many patches).
     """
     h, w = cfg.height, cfg.width
-    x_img, y_img = _image_coords(cfg)
+    forward, right, s = _image_coords(cfg)  # s: [H, W] dz per horizontal metre
     pose = jnp.asarray(pose, jnp.float32)
     cam = camera_origin(pose, cfg)
     z0 = float(cfg.mount_height)
     cos, sin = jnp.cos(pose[2]), jnp.sin(pose[2])
-    norm = np.sqrt(1 + x_img * x_img)
-    dx, dy = (cos + sin * x_img) / norm, (sin - cos * x_img) / norm  # [W] unit column directions
+    dx, dy = cos * forward + sin * right, sin * forward - cos * right  # [W] unit column directions
     # Per-pixel constants of the camera (numpy: folded into the compiled code).
-    s = (y_img[:, None] / norm[None, :]).astype(np.float32)  # [H, W] dz per horizontal metre
     stretch = np.sqrt(1 + s * s).astype(np.float32)  # ray length per horizontal metre
     inv_a = (1 / (1 + s * s)).astype(np.float32)
     inv_down = np.where(s < 0, 1.0 / np.where(s < 0, s, -1.0), 0.0).astype(np.float32)
@@ -386,7 +410,8 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     # with a few, every row (the row concatenation then costs more than the tests it saves).
     num_patches = scene.patches.shape[0]
     gather = num_patches > _GATHER_PATCHES
-    g0 = int(np.argmax(y_img < 0)) if (y_img < 0).any() else h  # first row that can see the ground
+    below = (s < 0).any(axis=1)
+    g0 = int(np.argmax(below)) if below.any() else h  # first row that can see the ground
     g0 = g0 if gather else 0
     patch = jnp.full((h, w), -1, jnp.int32)
     if num_patches and g0 < h:

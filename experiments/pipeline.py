@@ -636,8 +636,9 @@ def eval_cache_key(method: Method, preset: Preset, data_dir: Path, split: str, e
     world is evaluated again rather than read back.  Code changes are not in it: evaluate into a new
     ``--out`` after changing the planner or the env's code.  The env's observation ``history`` is left out:
     a model of another history has other parameter shapes, so the params digest already tells them apart,
-    and evaluations stored before the field existed stay valid."""
-    env_config = {k: v for k, v in dataclasses.asdict(env.config).items() if k != "history"}
+    and evaluations stored before the field existed stay valid (so do those stored before any later-added env
+    field, at its old implicit value: ``collect.comparable_settings``)."""
+    env_config = collect.comparable_settings(dataclasses.asdict(env.config))
     return json.dumps({"method": dataclasses.asdict(method), "preset": dataclasses.asdict(preset),
                        "data_dir": str(data_dir), "env": env_config,
                        "params_sha256": params_digest(params), "split": split},

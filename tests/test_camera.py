@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+import pytest
 from mujoco import mjx
 
 from envs import scene as S
@@ -227,6 +228,48 @@ def test_pixel_rays_camera_model():
     centre_elev = np.degrees(np.arcsin((dirs[17, 32, 2] + dirs[18, 32, 2]) / 2))
     assert abs(centre_elev + cfg.pitch_deg) < 1.5
     assert abs(cfg.pitch_deg - 3.9) < 0.05
+
+
+def test_cylindrical_camera_columns_at_equal_angles_and_depth_matches_mjx_ray():
+    """A 240-degree cylindrical camera: equal column azimuths, and the renderer still agrees with mjx.ray."""
+    cfg = dataclasses.replace(FOREST_CAMERA, projection="cylindrical", hfov_deg=240.0, width=48, height=18)
+    _, dirs = pixel_rays(jnp.zeros(3), cfg)
+    az = np.unwrap(np.arctan2(dirs[0, :, 1], dirs[0, :, 0]))
+    np.testing.assert_allclose(np.diff(az), -np.radians(240.0) / 48, atol=1e-5)  # left to right
+    np.testing.assert_allclose(az[0], np.radians(120.0 - 2.5), atol=1e-5)
+    # Rows: one slope per row in every column (vertical world lines stay vertical).
+    slope = dirs[..., 2] / np.linalg.norm(dirs[..., :2], axis=-1)
+    np.testing.assert_allclose(slope - slope[:, :1], 0.0, atol=1e-6)
+    scene = forest_scene()
+    _, mx, dx = compile_scene(scene)
+    poses = jnp.asarray(POSES[:3])
+    ours = np.asarray(jax.jit(jax.vmap(lambda p: render(scene, p, cfg)[2]))(poses))
+    ref = np.asarray(jax.jit(jax.vmap(lambda p: mjx_ray_depth(mx, dx, p, cfg)))(poses))
+    hits = (ref < cfg.far) | (ours < cfg.far)
+    assert hits.mean() > 0.5
+    assert (np.abs(ours - ref) < 0.01)[hits].mean() >= 0.99
+
+
+def test_cylindrical_camera_sees_beside_the_car():
+    """A post 2 m to the car's left: outside the paper's 120-degree view, inside a 200-degree cylinder,
+    in the column of azimuth +90 degrees."""
+    scene = S.empty_scene(1, 0, 0)
+    scene = scene.replace(circles=jnp.asarray([[0.5, 2.0, 0.3, 2.0]], jnp.float32))
+    pose = jnp.zeros(3)
+    assert not np.any(np.asarray(render(scene, pose, FOREST_CAMERA)[1]) == S.TREE)
+    wide = dataclasses.replace(FOREST_CAMERA, projection="cylindrical", hfov_deg=200.0)
+    seen = np.flatnonzero((np.asarray(render(scene, pose, wide)[1]) == S.TREE).any(axis=0))
+    azimuth = 100.0 - (seen + 0.5) * 200.0 / 64  # degrees left of the heading, per column
+    assert seen.size and np.all(np.abs(azimuth - 90.0) < 12)
+
+
+def test_camera_config_rejects_bad_projection_and_field_of_view():
+    with pytest.raises(ValueError, match="projection"):
+        CameraConfig(projection="fisheye")
+    with pytest.raises(ValueError, match="hfov_deg.*180"):
+        CameraConfig(hfov_deg=190.0)
+    with pytest.raises(ValueError, match="hfov_deg.*360"):
+        CameraConfig(projection="cylindrical", hfov_deg=400.0)
 
 
 def test_grayscale_is_the_papers_weighting_of_the_colour_image():

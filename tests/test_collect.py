@@ -171,6 +171,23 @@ def test_forest_collection_stores_semantic_maps_of_the_labelled_frames(tmp_path)
     sampler = data.make_sampler(again, horizon=4, history=longer.spec.history)
     batch = jax.jit(data.WindowSampler.sample, static_argnums=2)(sampler, jax.random.key(0), 8)
     assert batch.obs.images.shape == (8, 8) + env.spec.image_shape
+    # Another camera stores other frames: refused, naming the field, and the stored dataset is untouched.
+    import dataclasses
+    wide = envs.make("forest", camera=dataclasses.replace(env.config.camera, projection="cylindrical", hfov_deg=200.0))
+    with pytest.raises(ValueError, match="env_config.*projection"):
+        collect.collect(wide, collect.random_policy(wide.spec), None, None, path=ds.path, num_steps=300,
+                        num_robots=4, key=jax.random.key(0), progress=False)
+    assert data.Dataset.open(ds.path).num_steps == ds.num_steps
+
+
+def test_comparable_settings_leave_out_history_and_later_fields_at_their_old_values():
+    old = {"history": 4, "camera": {"width": 64, "hfov_deg": 120.0}, "lookahead": 2.0}  # stored before the fields
+    now = {"history": 8, "camera": {"width": 64, "hfov_deg": 120.0, "projection": "pinhole"}, "lookahead": 2.0}
+    assert collect.comparable_settings(old) == collect.comparable_settings(now)
+    assert "projection" in now["camera"]  # the input is not modified
+    wide = {**now, "camera": {**now["camera"], "projection": "cylindrical"}}
+    assert collect.comparable_settings(wide) != collect.comparable_settings(old)
+    assert collect.comparable_settings({"history": 4}) == {}
 
 
 COLLECTOR = textwrap.dedent("""
