@@ -5,6 +5,7 @@ Pure NumPy/matplotlib on host arrays; nothing here runs under jit.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -78,6 +79,8 @@ def write_json(path: Path, obj) -> None:
 
 
 def _strict(x):
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):  # e.g. a camera given as an env override
+        x = dataclasses.asdict(x)
     if isinstance(x, np.ndarray):
         x = x.tolist()
     if isinstance(x, Mapping):

@@ -62,6 +62,11 @@ def test_forest_success_on_drivable_paths_leaves_out_the_tight_bends():
 def test_write_json_is_strict(tmp_path):
     report.write_json(tmp_path / "m.json", {"a": np.array([1.0, np.nan]), "b": float("inf"), "c": (np.float32(2.5),)})
     assert json.loads((tmp_path / "m.json").read_text()) == {"a": [1.0, None], "b": None, "c": [2.5]}
+    # A dataclass (an env override such as a camera) is written as its fields, not as its repr.
+    from envs.camera import FOREST_CAMERA
+    report.write_json(tmp_path / "c.json", {"camera": FOREST_CAMERA})
+    stored = json.loads((tmp_path / "c.json").read_text())["camera"]
+    assert stored["hfov_deg"] == 120.0 and stored["projection"] == "pinhole" and stored["light_dir"] == [0.35, 0.5, 0.8]
 
 
 def test_separated_needs_clear_intervals():
