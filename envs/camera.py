@@ -120,12 +120,13 @@ HALL_CAMERA = CameraConfig(width=128, height=96)
 
 
 def _image_coords(cfg: CameraConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The camera's geometry in the car frame, as numpy constants.
+    """The camera's geometry in the car frame, as float32 numpy constants.
 
-    Returns ``(forward, right, slope)``: per column the unit horizontal direction of its vertical
-    plane (components along the car's heading and to its right, [W] each), and per pixel the ray's
-    rise per horizontal metre ([H, W]).  Pinhole: image-plane coordinates x_j, y_i at focal length 1.
-    Cylindrical: column azimuths at equal steps, and each row's slope the same in every column.
+    Returns ``(along, across, rise)``: pixel (i, j) looks along the car-frame direction
+    ``(along_j, -across_j, rise_i)`` (forward, left, up; not unit length).  Pinhole: the image plane at
+    focal length 1, ``along`` = 1, ``across`` and ``rise`` the image-plane coordinates (right, up).
+    Cylindrical: ``(along, across)`` = (cos, sin) of column azimuths at equal steps, and ``rise`` a
+    row's slope, the same in every column.
     """
     half = math.radians(cfg.hfov_deg) / 2
     u = 2 * (np.arange(cfg.width) + 0.5) / cfg.width - 1  # -1 .. 1, left to right
@@ -133,14 +134,11 @@ def _image_coords(cfg: CameraConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray
     tilt = math.tan(math.radians(cfg.pitch_deg))
     if cfg.projection == "pinhole":
         ax = math.tan(half)
-        x, y = ax * u, ax * cfg.height / cfg.width * v - tilt
-        norm = np.sqrt(1 + x * x)
-        forward, right, slope = 1 / norm, x / norm, y[:, None] / norm[None, :]
+        along, across, rise = np.ones_like(u), ax * u, ax * cfg.height / cfg.width * v - tilt
     else:  # square pixels at the image centre: a row's step in slope equals a column's step in angle
-        azimuth = half * u
-        forward, right = np.cos(azimuth), np.sin(azimuth)
-        slope = np.broadcast_to((half * cfg.height / cfg.width * v - tilt)[:, None], (cfg.height, cfg.width))
-    return forward.astype(np.float32), right.astype(np.float32), np.asarray(slope, np.float32)
+        along, across = np.cos(half * u), np.sin(half * u)
+        rise = half * cfg.height / cfg.width * v - tilt
+    return along.astype(np.float32), across.astype(np.float32), rise.astype(np.float32)
 
 
 def camera_origin(pose: jax.Array, cfg: CameraConfig) -> jax.Array:
@@ -153,14 +151,14 @@ def camera_origin(pose: jax.Array, cfg: CameraConfig) -> jax.Array:
 
 def pixel_rays(pose: jax.Array, cfg: CameraConfig) -> tuple[jax.Array, jax.Array]:
     """The camera model: origin f32[3] and unit world direction f32[h, w, 3] of every pixel."""
-    forward, right, slope = _image_coords(cfg)
+    along, across, rise = _image_coords(cfg)
     yaw = jnp.asarray(pose, jnp.float32)[2]
     c, s = jnp.cos(yaw), jnp.sin(yaw)
-    # Car frame: forward, left (= -right), up (the slope per horizontal metre); rotated by yaw into the world.
-    fx, fy = forward, -right
+    # Car frame: forward (along), left (-across), up (rise); rotated by yaw into the world.
+    fx, fy = along, -across
     wx, wy = c * fx - s * fy, s * fx + c * fy
     d = jnp.stack([jnp.broadcast_to(wx, (cfg.height, cfg.width)), jnp.broadcast_to(wy, (cfg.height, cfg.width)),
-                   jnp.asarray(slope)], -1)
+                   jnp.broadcast_to(rise[:, None], (cfg.height, cfg.width))], -1)
     return camera_origin(pose, cfg), d / jnp.linalg.norm(d, axis=-1, keepdims=True)
 
 
@@ -308,13 +306,18 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     are the ground paint's class and colour look-ups when a scene has many patches).
     """
     h, w = cfg.height, cfg.width
-    forward, right, s = _image_coords(cfg)  # s: [H, W] dz per horizontal metre
+    along, across, rise = _image_coords(cfg)
     pose = jnp.asarray(pose, jnp.float32)
     cam = camera_origin(pose, cfg)
     z0 = float(cfg.mount_height)
     cos, sin = jnp.cos(pose[2]), jnp.sin(pose[2])
-    dx, dy = cos * forward + sin * right, sin * forward - cos * right  # [W] unit column directions
+    norm = np.sqrt(along * along + across * across)
+    if cfg.projection == "pinhole":  # along = 1: the float order the stored datasets were rendered with
+        dx, dy = (cos + sin * across) / norm, (sin - cos * across) / norm  # [W] unit column directions
+    else:
+        dx, dy = (cos * along + sin * across) / norm, (sin * along - cos * across) / norm
     # Per-pixel constants of the camera (numpy: folded into the compiled code).
+    s = (rise[:, None] / norm[None, :]).astype(np.float32)  # [H, W] dz per horizontal metre
     stretch = np.sqrt(1 + s * s).astype(np.float32)  # ray length per horizontal metre
     inv_a = (1 / (1 + s * s)).astype(np.float32)
     inv_down = np.where(s < 0, 1.0 / np.where(s < 0, s, -1.0), 0.0).astype(np.float32)
@@ -410,8 +413,7 @@ def render(scene: Scene, pose: jax.Array, cfg: CameraConfig = FOREST_CAMERA):
     # with a few, every row (the row concatenation then costs more than the tests it saves).
     num_patches = scene.patches.shape[0]
     gather = num_patches > _GATHER_PATCHES
-    below = (s < 0).any(axis=1)
-    g0 = int(np.argmax(below)) if below.any() else h  # first row that can see the ground
+    g0 = int(np.argmax(rise < 0)) if (rise < 0).any() else h  # first row that can see the ground
     g0 = g0 if gather else 0
     patch = jnp.full((h, w), -1, jnp.int32)
     if num_patches and g0 < h:
