@@ -1,6 +1,7 @@
 """capsjax.collect: policies with the paper's exploration schedule, and collection into a dataset (fast env)."""
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import subprocess
@@ -172,7 +173,6 @@ def test_forest_collection_stores_semantic_maps_of_the_labelled_frames(tmp_path)
     batch = jax.jit(data.WindowSampler.sample, static_argnums=2)(sampler, jax.random.key(0), 8)
     assert batch.obs.images.shape == (8, 8) + env.spec.image_shape
     # Another camera stores other frames: refused, naming the field, and the stored dataset is untouched.
-    import dataclasses
     wide = envs.make("forest", camera=dataclasses.replace(env.config.camera, projection="cylindrical", hfov_deg=200.0))
     with pytest.raises(ValueError, match="env_config.*projection"):
         collect.collect(wide, collect.random_policy(wide.spec), None, None, path=ds.path, num_steps=300,
