@@ -33,8 +33,10 @@ from experiments import pipeline, report
 
 # Fields that must agree for episodes of several runs to be pooled into one sample of one setting.  The
 # preset is compared by its settings (config.json) where both runs stored them, so that a variant evaluated
-# under a scratch name pools with the same settings run under the preset's own name.
-POOL_KEYS = ("experiment", "split", "train_seed")
+# under a scratch name pools with the same settings run under the preset's own name.  The training seed may
+# differ: runs of several training seeds pool into one sample of the setting, with intervals that resample
+# the training runs too (``report.mean_ci``'s groups).
+POOL_KEYS = ("experiment", "split")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +66,15 @@ class Run:
     def seed(self) -> int:
         return int(self.metrics["seed"])
 
+    @property
+    def train_seed(self) -> int:
+        return int(self.metrics["train_seed"])
+
+    @property
+    def key(self) -> tuple[int, int]:
+        """(training seed, evaluation seed): what one run contributes, and what pairs two variants' runs."""
+        return self.train_seed, self.seed
+
 
 def load_run(path: Path) -> Run:
     """A run folder's stored results, with a clear error when it is not one."""
@@ -72,7 +83,7 @@ def load_run(path: Path) -> Run:
     if not file.is_file():
         raise FileNotFoundError(f"run folder {path}: no metrics.json (expected the folder an experiment run wrote)")
     metrics = json.loads(file.read_text())
-    missing = [k for k in (*POOL_KEYS, "preset", "seed", "per_episode") if k not in metrics]
+    missing = [k for k in (*POOL_KEYS, "train_seed", "preset", "seed", "per_episode") if k not in metrics]
     if missing:
         raise ValueError(f"{file}: missing field(s) {missing}; runs written before per-episode results were "
                          "stored cannot be pooled")
@@ -118,10 +129,11 @@ def _require_same_preset(runs: Sequence[Run], what: str) -> None:
 
 
 def _require_distinct_seeds(runs: Sequence[Run], what: str) -> None:
-    seeds = [r.seed for r in runs]
-    if len(set(seeds)) != len(seeds):
-        raise ValueError(f"{what}: field 'seed' repeats ({seeds}); pooling one seed twice would count its "
-                         "episodes twice -- expected distinct evaluation seeds")
+    keys = [r.key for r in runs]
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"{what}: field 'seed' repeats for one training seed ((train_seed, seed): {keys}); pooling "
+                         "one evaluation twice would count its episodes twice -- expected distinct evaluation seeds "
+                         "per training seed")
 
 
 def _common_methods(runs: Sequence[Run]) -> list[str]:
@@ -129,9 +141,28 @@ def _common_methods(runs: Sequence[Run]) -> list[str]:
     return [m for m in runs[0].metrics["per_episode"] if all(m in r.metrics["per_episode"] for r in runs)]
 
 
+def _ordered(runs: Sequence[Run]) -> list[Run]:
+    return sorted(runs, key=lambda r: r.key)
+
+
+def _episode_count(run: Run) -> int:
+    """Episodes in one run (every method of a run drives the same tasks, every metric has one value each)."""
+    first_method = next(iter(run.metrics["per_episode"].values()))
+    return len(next(iter(first_method.values())))
+
+
+def _training_groups(runs: Sequence[Run]) -> np.ndarray | None:
+    """Each pooled episode's training seed (in ``pooled_episodes``' order) where the runs hold several, else
+    None: then every episode comes from one trained model and the intervals resample episodes only."""
+    runs = _ordered(runs)
+    if len({r.train_seed for r in runs}) < 2:
+        return None
+    return np.concatenate([np.full(_episode_count(r), r.train_seed) for r in runs])
+
+
 def pooled_episodes(runs: Sequence[Run]) -> dict[str, dict[str, np.ndarray]]:
-    """``{method: {metric: values}}`` over the episodes of all ``runs``, seeds in ascending order."""
-    runs = sorted(runs, key=lambda r: r.seed)
+    """``{method: {metric: values}}`` over the episodes of all ``runs``, ordered by (training seed, seed)."""
+    runs = _ordered(runs)
     out = {}
     for method in _common_methods(runs):
         names = [k for k in runs[0].metrics["per_episode"][method]
@@ -149,14 +180,15 @@ def pool(runs: Sequence[Run]) -> dict:
     _require_same_preset(runs, "pooling")
     _require_distinct_seeds(runs, "pooling")
     per_episode = pooled_episodes(runs)
-    metrics = {m: report.summarize(v) for m, v in per_episode.items()}
+    metrics = {m: report.summarize(v, groups=_training_groups(runs)) for m, v in per_episode.items()}
     first = runs[0].metrics
     exp = experiment(first["experiment"])
     return {
         **{k: first[k] for k in POOL_KEYS},
         "preset": first["preset"],
-        "seeds": sorted(r.seed for r in runs),
-        "runs": [str(r.path) for r in sorted(runs, key=lambda r: r.seed)],
+        "seeds": sorted({r.seed for r in runs}),
+        "train_seeds": sorted({r.train_seed for r in runs}),
+        "runs": [str(r.path) for r in _ordered(runs)],
         "metrics": metrics,
         "paper": first.get("paper", {}),
         "comparison": pipeline.compare(exp, metrics),
@@ -183,7 +215,7 @@ def _require_same_tasks(runs: Sequence[Run], against: Sequence[Run]) -> None:
     """Two variants may differ in any setting, an env setting that leaves the tasks alone included (the
     observation's history, say), as long as they ran the same tasks: each episode must start at the same place
     in both.  Where a run stored no poses, both must have the same env overrides instead."""
-    for a, b in zip(sorted(runs, key=lambda r: r.seed), sorted(against, key=lambda r: r.seed)):
+    for a, b in zip(_ordered(runs), _ordered(against)):
         pos_a, pos_b = start_positions(a), start_positions(b)
         if pos_a is None or pos_b is None:
             _require_same_env([a, b], "paired comparison")
@@ -193,7 +225,8 @@ def _require_same_tasks(runs: Sequence[Run], against: Sequence[Run]) -> None:
 
 
 def paired_differences(runs: Sequence[Run], against: Sequence[Run]) -> dict[str, dict[str, dict]]:
-    """``{method: {metric: mean_ci(runs - against)}}`` over episodes paired by (seed, episode index)."""
+    """``{method: {metric: mean_ci(runs - against)}}`` over episodes paired by (training seed, seed, episode
+    index): each variant's model of one training seed drives the same tasks as the other's of that seed."""
     for group, what in ((runs, "runs"), (against, "against")):
         if not group:
             raise ValueError(f"{what}: expected at least one run folder")
@@ -201,11 +234,13 @@ def paired_differences(runs: Sequence[Run], against: Sequence[Run]) -> dict[str,
         _require_distinct_seeds(group, what)
         _require_same_env(group, what)
     _require_same([*runs, *against], ("experiment", "split"), "paired comparison", env=False)  # tasks: below
-    seeds_a, seeds_b = sorted(r.seed for r in runs), sorted(r.seed for r in against)
-    if seeds_a != seeds_b:
-        raise ValueError(f"against: field 'seed' must match the runs' seeds {seeds_a} (the same tasks), got {seeds_b}")
+    keys_a, keys_b = sorted(r.key for r in runs), sorted(r.key for r in against)
+    if keys_a != keys_b:
+        raise ValueError(f"against: fields 'train_seed' and 'seed' must match the runs' (train_seed, seed) {keys_a} "
+                         f"(the same tasks for models of the same training seeds), got {keys_b}")
     _require_same_tasks(runs, against)
     a, b = pooled_episodes(runs), pooled_episodes(against)
+    groups = _training_groups(runs)
     out = {}
     for method in (m for m in a if m in b):
         out[method] = {}
@@ -213,18 +248,20 @@ def paired_differences(runs: Sequence[Run], against: Sequence[Run]) -> dict[str,
             if a[method][metric].shape != b[method][metric].shape:
                 raise ValueError(f"against: method '{method}' metric '{metric}' has {b[method][metric].size} episodes, "
                                  f"the runs {a[method][metric].size}; expected the same episodes on the same tasks")
-            out[method][metric] = report.mean_ci(a[method][metric] - b[method][metric])
+            out[method][metric] = report.mean_ci(a[method][metric] - b[method][metric], groups=groups)
     return out
 
 
-def method_pair(pooled: dict, first: str, second: str) -> dict[str, dict[str, dict]]:
-    """``{metric: {"difference": mean_ci(first - second), "relative": relative_change_ci(first, second)}}``."""
+def method_pair(pooled: dict, first: str, second: str, groups=None) -> dict[str, dict[str, dict]]:
+    """``{metric: {"difference": mean_ci(first - second), "relative": relative_change_ci(first, second)}}``;
+    ``groups``: each episode's training seed where the pool holds several (``report.mean_ci``)."""
     episodes = pooled["per_episode"]
     for name in (first, second):
         if name not in episodes:
             raise ValueError(f"pair: method {name!r} was not evaluated in every run; expected one of {sorted(episodes)}")
     a, b = episodes[first], episodes[second]
-    return {k: {"difference": report.mean_ci(np.subtract(a[k], b[k])), "relative": report.relative_change_ci(a[k], b[k])}
+    return {k: {"difference": report.mean_ci(np.subtract(a[k], b[k]), groups=groups),
+                "relative": report.relative_change_ci(a[k], b[k], groups=groups)}
             for k in a if k in b}
 
 
@@ -248,10 +285,23 @@ def difference_table(diffs: dict[str, dict[str, dict]], columns) -> str:
                 cells.append("-")
             else:
                 scale, digits, unit = (100, 0, " pts") if kind == "rate" else (1, 2, "")
-                low, mean, high = (_signed(scale * s[k], digits) for k in ("ci_low", "mean", "ci_high"))
-                cells.append(f"{mean}{unit} [{low}, {high}]")
+                cell = f"{_signed(scale * s['mean'], digits)}{unit}"
+                if "ci_low" in s:
+                    cell += f" [{_signed(scale * s['ci_low'], digits)}, {_signed(scale * s['ci_high'], digits)}]"
+                cells.append(cell)
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _by_group(diffs: dict[str, dict[str, dict]]) -> dict[str, dict[str, dict]]:
+    """``{"<method>, training seed <g>": {metric: {"mean", "ci_low", "ci_high"}}}`` from the group means that
+    ``report.mean_ci`` returns, for a table row per training seed (means only)."""
+    rows: dict[str, dict[str, dict]] = {}
+    for method, stats in diffs.items():
+        for metric, stat in stats.items():
+            for group, mean in stat.get("groups", {}).items():
+                rows.setdefault(f"{method}, training seed {group}", {})[metric] = {"mean": mean}
+    return rows
 
 
 def _signed(x: float, digits: int) -> str:
@@ -265,19 +315,28 @@ def main(cfg: PoolConfig) -> dict:
     exp = experiment(pooled["experiment"])
     seeds = ", ".join(map(str, pooled["seeds"]))
     n = {m: next(iter(s.values()))["n"] for m, s in pooled["metrics"].items()}
+    groups = _training_groups(runs)
+    if groups is None:
+        over = "the pooled episodes"
+    else:
+        over = "the training runs, then the episodes of each drawn run"
+        seeds += f"; training seeds {', '.join(map(str, pooled['train_seeds']))}"
     notes = [f"Preset `{pooled['preset']}`, {pooled['split']} seeds {seeds} pooled ({max(n.values(), default=0)} "
-             "episodes per method); cells: mean [95 % bootstrap CI over the pooled episodes]."]
+             f"episodes per method); cells: mean [95 % bootstrap CI over {over}]."]
     text = report.table(pooled["metrics"], exp.columns, pooled["paper"],
                         title=f"{exp.name} ({pooled['preset']}, {pooled['split']} seeds {seeds})", notes=notes)
     if cfg.against:
         pooled["against"] = [str(p) for p in cfg.against]
         pooled["paired_difference"] = paired_differences(runs, [load_run(p) for p in cfg.against])
         text += (f"\nPaired differences per episode, runs minus --against ({', '.join(map(str, cfg.against))}), "
-                 "mean [95 % bootstrap CI over the paired episodes]:\n\n"
+                 f"mean [95 % bootstrap CI over {'the paired episodes' if groups is None else over}]:\n\n"
                  + difference_table(pooled["paired_difference"], exp.columns))
+        if groups is not None:
+            text += "\nThe same, each training seed's mean alone:\n\n" + difference_table(
+                _by_group(pooled["paired_difference"]), exp.columns)
     if cfg.pair is not None:
         first, second = cfg.pair
-        pooled["pair"] = {"methods": [first, second], "metrics": method_pair(pooled, first, second)}
+        pooled["pair"] = {"methods": [first, second], "metrics": method_pair(pooled, first, second, groups)}
         text += f"\n{first} against {second} on the same episodes, mean [95 % bootstrap CI over the paired episodes]:\n\n"
         text += "| metric | difference | relative change of the mean |\n|---|---|---|\n"
         for metric, stats in pooled["pair"]["metrics"].items():

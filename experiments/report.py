@@ -16,51 +16,105 @@ CI_LEVEL = 0.95
 BOOTSTRAP_RESAMPLES = 2000
 
 
-def mean_ci(values, *, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> dict:
+def _group_labels(groups, size: int, what: str) -> np.ndarray | None:
+    if groups is None:
+        return None
+    labels = np.asarray(groups).reshape(-1)
+    if labels.size != size:
+        raise ValueError(f"{what}: field 'groups' has {labels.size} labels for {size} values; expected one per value")
+    return labels
+
+
+def _two_stage_weights(labels: np.ndarray, resamples: int, rng: np.random.Generator) -> np.ndarray:
+    """``f64[resamples, n]``: how often each value enters each resample of a two-stage bootstrap -- draw as many
+    groups as there are, with replacement, then within each drawn group as many of its values as it holds."""
+    names = np.unique(labels)
+    members = [np.flatnonzero(labels == name) for name in names]
+    weights = np.zeros((resamples, labels.size))
+    drawn = rng.integers(0, len(members), size=(resamples, len(members)))
+    for slot in range(len(members)):
+        for group, member in enumerate(members):
+            rows = np.flatnonzero(drawn[:, slot] == group)
+            picks = member[rng.integers(0, member.size, size=(rows.size, member.size))]
+            np.add.at(weights, (rows[:, None], picks), 1.0)
+    return weights
+
+
+def _several(labels: np.ndarray | None) -> bool:
+    return labels is not None and np.unique(labels).size >= 2
+
+
+def mean_ci(values, *, groups=None, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES,
+            seed: int = 0) -> dict:
     """Mean of per-episode ``values`` with a percentile-bootstrap confidence interval over episodes.
 
     The bootstrap (rather than a normal approximation) because most of our metrics are rates of a few
     dozen 0/1 outcomes, often at 0 or 1, where the normal interval is meaningless.
+
+    ``groups`` (one label per value, e.g. the training seed of the model that drove each episode) makes it a
+    two-stage bootstrap: resample the groups, then the episodes within each drawn group.  Episodes of one
+    trained model share that model's luck, so an interval over episodes alone leaves out how far a retrained
+    model moves; with two or more groups this one includes it, and ``groups`` in the result holds each group's
+    mean.  With few groups (three training seeds, say) the interval is itself rough: read it beside those.
     """
     x = np.asarray(values, np.float64).reshape(-1)
-    x = x[np.isfinite(x)]
+    labels = _group_labels(groups, x.size, "mean_ci")
+    keep = np.isfinite(x)
+    x = x[keep]
+    labels = None if labels is None else labels[keep]
     if x.size == 0:
         return {"mean": float("nan"), "ci_low": float("nan"), "ci_high": float("nan"), "std": float("nan"), "n": 0}
     rng = np.random.default_rng(seed)
-    means = x[rng.integers(0, x.size, size=(resamples, x.size))].mean(1)
+    if _several(labels):
+        weights = _two_stage_weights(labels, resamples, rng)
+        means = weights @ x / weights.sum(1)
+    else:
+        means = x[rng.integers(0, x.size, size=(resamples, x.size))].mean(1)
     alpha = (1 - level) / 2
-    return {
+    out = {
         "mean": float(x.mean()),
         "ci_low": float(np.quantile(means, alpha)),
         "ci_high": float(np.quantile(means, 1 - alpha)),
         "std": float(x.std()),
         "n": int(x.size),
     }
+    if _several(labels):
+        out["groups"] = {str(name): float(x[labels == name].mean()) for name in np.unique(labels)}
+    return out
 
 
-def relative_change_ci(a, b, *, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> dict:
+def relative_change_ci(a, b, *, groups=None, level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES,
+                       seed: int = 0) -> dict:
     """``mean(a) / mean(b) - 1`` for paired per-episode values, with a bootstrap interval that resamples the
-    pairs together (e.g. the door share of one reward over another's, on the same loops)."""
+    pairs together (e.g. the door share of one reward over another's, on the same loops); ``groups`` as in
+    ``mean_ci``."""
     a = np.asarray(a, np.float64).reshape(-1)
     b = np.asarray(b, np.float64).reshape(-1)
     if a.shape != b.shape:
         raise ValueError(f"relative_change_ci: expected paired values, got {a.size} and {b.size}")
+    labels = _group_labels(groups, a.size, "relative_change_ci")
     keep = np.isfinite(a) & np.isfinite(b)
     a, b = a[keep], b[keep]
+    labels = None if labels is None else labels[keep]
     if a.size == 0 or b.mean() == 0:
         return {"mean": float("nan"), "ci_low": float("nan"), "ci_high": float("nan"), "n": int(a.size)}
-    idx = np.random.default_rng(seed).integers(0, a.size, size=(resamples, a.size))
-    base = b[idx].mean(1)
+    rng = np.random.default_rng(seed)
+    if _several(labels):
+        weights = _two_stage_weights(labels, resamples, rng)
+        resampled_a, base = weights @ a / weights.sum(1), weights @ b / weights.sum(1)
+    else:
+        idx = rng.integers(0, a.size, size=(resamples, a.size))
+        resampled_a, base = a[idx].mean(1), b[idx].mean(1)
     # A resample whose base mean is 0 has no relative change: it is left out rather than counted as infinite.
-    ratios = np.where(base != 0, a[idx].mean(1) / np.where(base != 0, base, 1.0) - 1, np.nan)
+    ratios = np.where(base != 0, resampled_a / np.where(base != 0, base, 1.0) - 1, np.nan)
     alpha = (1 - level) / 2
     return {"mean": float(a.mean() / b.mean() - 1), "ci_low": float(np.nanquantile(ratios, alpha)),
             "ci_high": float(np.nanquantile(ratios, 1 - alpha)), "n": int(a.size)}
 
 
-def summarize(per_episode: Mapping[str, np.ndarray]) -> dict:
-    """``{metric: mean_ci(values)}`` for per-episode metric arrays."""
-    return {name: mean_ci(values) for name, values in per_episode.items()}
+def summarize(per_episode: Mapping[str, np.ndarray], groups=None) -> dict:
+    """``{metric: mean_ci(values, groups=groups)}`` for per-episode metric arrays."""
+    return {name: mean_ci(values, groups=groups) for name, values in per_episode.items()}
 
 
 def separated(a: dict, b: dict, higher_is_better: bool = True) -> bool:

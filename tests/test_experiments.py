@@ -32,6 +32,29 @@ def test_mean_ci_brackets_the_mean_and_narrows_with_more_episodes():
     assert report.mean_ci([np.nan])["n"] == 0
 
 
+def test_mean_ci_with_groups_resamples_the_groups_too():
+    # Two trained models: one finishes every path, the other none.  Over 200 episodes the episode-only interval
+    # is narrow; resampling the models as well reaches both extremes (both draws the same model).
+    values = np.repeat([1.0, 0.0], 100)
+    seeds = np.repeat([0, 1], 100)
+    episodes_only = report.mean_ci(values)
+    grouped = report.mean_ci(values, groups=seeds)
+    assert grouped["mean"] == episodes_only["mean"] == 0.5
+    assert episodes_only["ci_high"] - episodes_only["ci_low"] < 0.2
+    assert grouped["ci_low"] == 0.0 and grouped["ci_high"] == 1.0
+    assert grouped["groups"] == {"0": 1.0, "1": 0.0} and "groups" not in episodes_only
+    # One group, or none, is the episode-only bootstrap itself (the same draws).
+    assert report.mean_ci(values, groups=np.zeros(200)) == episodes_only
+    # Every model alike: the groups add nothing and the interval stays inside the episodes' spread.
+    alike = report.mean_ci(np.tile([1.0, 0.0, 1.0, 1.0], 50), groups=np.repeat([0, 1], 100))
+    assert 0.6 < alike["ci_low"] < alike["mean"] == 0.75 < alike["ci_high"] < 0.9
+    with pytest.raises(ValueError, match="field 'groups' has 3 labels for 200 values"):
+        report.mean_ci(values, groups=[0, 1, 2])
+    ratio = report.relative_change_ci(np.repeat([2.0, 1.0], 100), np.ones(200), groups=seeds)
+    assert ratio["mean"] == pytest.approx(0.5) and ratio["ci_low"] == pytest.approx(0.0)
+    assert ratio["ci_high"] == pytest.approx(1.0)
+
+
 def test_relative_change_ci_resamples_pairs_together():
     base = np.array([4.0, 2.0, 6.0, 3.0, 5.0, 4.0])
     stat = report.relative_change_ci(1.3 * base, base)  # every pair +30 %, however unequal the pairs are

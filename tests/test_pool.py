@@ -8,7 +8,7 @@ from experiments import pool
 
 
 def write_run(folder, *, seed, success, distance, preset="small", split="val", experiment="forest",
-              baseline_success=None, env_overrides=None, settings=None, starts=None):
+              baseline_success=None, env_overrides=None, settings=None, starts=None, train_seed=0):
     folder.mkdir(parents=True)
     if starts is not None:  # the stored evaluation's poses: [E, T, 3], each episode from its start
         (folder / "eval").mkdir()
@@ -19,7 +19,7 @@ def write_run(folder, *, seed, success, distance, preset="small", split="val", e
     if baseline_success is not None:
         per_episode["gc_dql"] = {"success_rate": list(baseline_success),
                                  "path_distance_mean": [1.0] * len(baseline_success)}
-    metrics = {"experiment": experiment, "preset": preset, "seed": seed, "split": split, "train_seed": 0,
+    metrics = {"experiment": experiment, "preset": preset, "seed": seed, "split": split, "train_seed": train_seed,
                "paper": {"caps": {"success_rate": 0.75}}, "per_episode": per_episode}
     (folder / "metrics.json").write_text(json.dumps(metrics))
     if env_overrides is not None or settings is not None:
@@ -88,7 +88,7 @@ def test_paired_difference_needs_the_same_tasks(tmp_path):
     a = write_run(tmp_path / "a", seed=0, success=[1, 1], distance=[1.0, 1.0])
     other_seed = write_run(tmp_path / "b", seed=1, success=[1, 0], distance=[1.0, 1.0])
     fewer = write_run(tmp_path / "c", seed=0, success=[1], distance=[1.0])
-    with pytest.raises(ValueError, match="field 'seed' must match"):
+    with pytest.raises(ValueError, match="fields 'train_seed' and 'seed' must match"):
         pool.paired_differences([pool.load_run(a)], [pool.load_run(other_seed)])
     with pytest.raises(ValueError, match="expected the same episodes"):
         pool.paired_differences([pool.load_run(a)], [pool.load_run(fewer)])
@@ -111,6 +111,33 @@ def test_paired_variants_may_differ_in_env_settings_but_not_in_tasks(tmp_path):
     no_poses = write_run(tmp_path / "d", seed=0, success=[0, 1], distance=[1.0, 1.0], env_overrides={"history": 8})
     with pytest.raises(ValueError, match="field 'env_overrides'"):
         pool.paired_differences([pool.load_run(a)], [pool.load_run(no_poses)])
+
+
+def test_runs_of_several_training_seeds_pool_with_the_training_runs_resampled(tmp_path):
+    # Two training seeds, each evaluated on seeds 0 and 1 (the same tasks): model 0 wins every path, model 1
+    # none.  Pooled, the interval must reach both ends, since a third retraining may be like either.
+    runs = [write_run(tmp_path / f"t{t}s{s}", seed=s, train_seed=t, success=[1 - t] * 20, distance=[1.0 + t] * 20)
+            for t in (0, 1) for s in (0, 1)]
+    out = tmp_path / "pooled"
+    pooled = pool.main(pool.PoolConfig(runs=tuple(runs), out=out))
+    caps = pooled["metrics"]["caps"]["success_rate"]
+    assert caps["n"] == 80 and caps["mean"] == 0.5 and (caps["ci_low"], caps["ci_high"]) == (0.0, 1.0)
+    assert caps["groups"] == {"0": 1.0, "1": 0.0}
+    assert pooled["seeds"] == [0, 1] and pooled["train_seeds"] == [0, 1]
+    assert "training seeds 0, 1" in (out / "table.md").read_text()
+    # The same evaluation of one training seed twice is refused; another training seed's is not a repeat.
+    with pytest.raises(ValueError, match="field 'seed' repeats for one training seed"):
+        pool.pool([pool.load_run(runs[0]), pool.load_run(runs[0])])
+    # Paired against a variant, each training seed's model against the other variant's of that seed.
+    against = [write_run(tmp_path / f"b_t{t}s{s}", seed=s, train_seed=t, success=[0] * 20, distance=[1.0] * 20,
+                         preset="other") for t in (0, 1) for s in (0, 1)]
+    pooled = pool.main(pool.PoolConfig(runs=tuple(runs), against=tuple(against), out=out))
+    diff = pooled["paired_difference"]["caps"]["success_rate"]
+    assert diff["mean"] == 0.5 and diff["groups"] == {"0": 1.0, "1": 0.0} and diff["ci_low"] == 0.0
+    table = (out / "table.md").read_text()
+    assert "| caps, training seed 0 | +100 pts |" in table and "| caps, training seed 1 | +0 pts |" in table
+    with pytest.raises(ValueError, match="fields 'train_seed' and 'seed' must match"):
+        pool.paired_differences([pool.load_run(r) for r in runs], [pool.load_run(r) for r in against[:2]])
 
 
 def test_pair_compares_two_methods_on_the_same_episodes(tmp_path):
