@@ -294,7 +294,7 @@ def difference_table(diffs: dict[str, dict[str, dict]], columns) -> str:
 
 
 def _by_group(diffs: dict[str, dict[str, dict]]) -> dict[str, dict[str, dict]]:
-    """``{"<method>, training seed <g>": {metric: {"mean", "ci_low", "ci_high"}}}`` from the group means that
+    """``{"<method>, training seed <g>": {metric: {"mean": m}}}`` from the group means that
     ``report.mean_ci`` returns, for a table row per training seed (means only)."""
     rows: dict[str, dict[str, dict]] = {}
     for method, stats in diffs.items():
@@ -337,7 +337,8 @@ def main(cfg: PoolConfig) -> dict:
     if cfg.pair is not None:
         first, second = cfg.pair
         pooled["pair"] = {"methods": [first, second], "metrics": method_pair(pooled, first, second, groups)}
-        text += f"\n{first} against {second} on the same episodes, mean [95 % bootstrap CI over the paired episodes]:\n\n"
+        text += (f"\n{first} against {second} on the same episodes, mean [95 % bootstrap CI over "
+                 f"{'the paired episodes' if groups is None else over}]:\n\n")
         text += "| metric | difference | relative change of the mean |\n|---|---|---|\n"
         for metric, stats in pooled["pair"]["metrics"].items():
             d, r = stats["difference"], stats["relative"]
