@@ -10,6 +10,7 @@ The public API in one place::
 """
 from capsjax import baselines, checkpoint, collect, cues, data, labellers, mpc, sharding
 from capsjax.cues import Cue
+from capsjax.ensemble import Ensemble
 from capsjax.losses import Batch, total_loss
 from capsjax.model import CAPsModel, Carry, ModelConfig
 from capsjax.planner import CEMConfig, PlanState, init_plan_state, plan_batch
@@ -19,7 +20,7 @@ from capsjax.reward import RewardSpec
 from capsjax.training import TrainConfig, TrainState, init_train_state, make_train, make_train_step
 
 __all__ = [
-    "Batch", "CAPsModel", "baselines", "checkpoint", "collect", "data", "labellers", "mpc", "sharding", "CEMConfig", "Carry", "Cue", "ModelConfig", "PlanState", "RewardSpec",
+    "Batch", "CAPsModel", "Ensemble", "baselines", "checkpoint", "collect", "data", "labellers", "mpc", "sharding", "CEMConfig", "Carry", "Cue", "ModelConfig", "PlanState", "RewardSpec",
     "TrainConfig", "TrainState", "cues", "init_plan_state", "init_train_state", "jit_plan_batch",
     "make_train", "make_train_step", "plan", "plan_batch", "total_loss",
 ]

@@ -85,6 +85,11 @@ class Preset:
     onpolicy_cem: tuple[int, int, int, int] = (256, 64, 2, 16)
     onpolicy_noise: tuple[float, float] = (0.1, 0.1)
     onpolicy_reward: str = ""
+    # CAPs as an ensemble of this many models (``capsjax.ensemble.Ensemble``, not the paper's): each trained
+    # ``train_steps`` on the same data with its own initialisation and batch order, the planner scoring with
+    # their mean prediction.  Member 0 is the single model of ``ensemble=1`` (``checkpoints/caps``); member i
+    # trains in ``checkpoints/caps_member<i>``.
+    ensemble: int = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -366,16 +371,21 @@ def train_config(preset: Preset, total_steps: int) -> capsjax.TrainConfig:
 
 
 def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, cfg: RunConfig, *,
-               num_steps: int | None = None, name: str = "caps", state=None):
+               num_steps: int | None = None, name: str = "caps", state=None, member: int = 0):
     """CAPs to ``num_steps`` (default the preset's) in ``checkpoints/<name>``, from ``state`` if given
-    (continued training) and resuming from the latest checkpoint there; returns the train state."""
+    (continued training) and resuming from the latest checkpoint there; returns the train state.
+    ``member`` > 0 trains another member of an ensemble: the same data and settings, its own
+    initialisation and batch order."""
     train_cfg = train_config(preset, preset.train_steps + preset.onpolicy_train_steps)
     ckpt_dir = data_dir / "checkpoints" / name
+    key = jax.random.key(cfg.train_seed + 1)  # member 0 is the single model of ``ensemble=1``
+    if member:
+        key = jax.random.fold_in(key, member)
     t = time.time()
     with _advice_on_mismatch(ckpt_dir):
         state, metrics = training.fit(
             model, train_cfg, sampler.batches(preset.batch_size), num_steps or preset.train_steps,
-            key=jax.random.key(cfg.train_seed + 1), state=state, ckpt_dir=str(ckpt_dir.absolute()),
+            key=key, state=state, ckpt_dir=str(ckpt_dir.absolute()),
             save_every=preset.save_every, progress=cfg.progress, metadata=training_metadata(preset))
     log(exp, f"{name}: {int(state.step)} steps ({time.time() - t:.0f} s)")
     return state
@@ -451,6 +461,11 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     preset = smoke_preset(presets[cfg.preset]) if cfg.smoke else presets[cfg.preset]
     if preset.onpolicy_steps:
         onpolicy_method(exp, preset)  # a bad onpolicy_reward fails now, not after collecting and training
+    if not isinstance(preset.ensemble, int) or preset.ensemble < 1:
+        raise SystemExit(f"Preset.ensemble must be an int >= 1 (models in the CAPs ensemble), got {preset.ensemble!r}")
+    if preset.ensemble > 1 and preset.onpolicy_steps:
+        raise SystemExit("Preset.ensemble > 1 with Preset.onpolicy_steps > 0 is not supported: the on-policy "
+                         "stage continues one CAPs model; use ensemble=1 or onpolicy_steps=0")
     run_dir, data_dir = resolve_paths(exp, cfg)
     timings: dict[str, float] = {}
     env = envs.make(exp.env_name, **dict(exp.env_overrides))
@@ -471,6 +486,8 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     timings["label_s"] = time.time() - t
 
     model = capsjax.CAPsModel(model_config(exp, preset, env))
+    # What the CAPs methods plan with: the model, or the ensemble of ``preset.ensemble`` such models.
+    caps_model = capsjax.Ensemble(model, preset.ensemble) if preset.ensemble > 1 else model
     label_sources = {cue: "segmenter" for cue in exp.learned_cues}
     needed = sorted({c.source for c in exp.cues} | {"collision", "speed", "heading"})
     sampler = data.make_sampler(ds, horizon=preset.horizon, episodes=train_ids, label_sources=label_sources,
@@ -482,6 +499,11 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     if any(m.kind == "caps" for m in methods) or preset.onpolicy_steps:
         caps_state = train_caps(exp, preset, model, sampler, data_dir, cfg)
         params["caps"] = caps_state.params
+        if preset.ensemble > 1:
+            members = [params["caps"]] + [
+                train_caps(exp, preset, model, sampler, data_dir, cfg, name=f"caps_member{i}", member=i).params
+                for i in range(1, preset.ensemble)]
+            params["caps"] = caps_model.stack(members)
     timings["train_caps_s"] = time.time() - t
     if preset.onpolicy_steps:
         t = time.time()
@@ -506,7 +528,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         agents[kind], params[kind] = train_baseline(exp, preset, kind, model.config, env, sampler, data_dir, cfg)
         timings[f"train_{kind}_s"] = time.time() - t
 
-    holdout_loss = holdout_losses(model, params.get("caps"), ds, holdout_ids, preset, label_sources, needed)
+    holdout_loss = holdout_losses(caps_model, params.get("caps"), ds, holdout_ids, preset, label_sources, needed)
 
     tasks = eval_tasks(env, preset, cfg.seed, cfg.split)
     cem = cem_config(preset, env, preset.horizon)
@@ -521,9 +543,9 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
             per_episode[method.name].update(task_metrics(exp, tasks, env, per_episode[method.name]))
             log(exp, f"eval {method.name}: reused {cache}")
             continue
-        spec = method_spec(method, model)
+        spec = method_spec(method, caps_model)
         if method.kind not in policies:  # one policy object per kind: its methods share one compiled program
-            policies[method.kind] = (mpc.caps_policy(model, cem) if method.kind == "caps" else
+            policies[method.kind] = (mpc.caps_policy(caps_model, cem) if method.kind == "caps" else
                                      baselines.baseline_policy(agents[method.kind], cem_config(preset, env, horizon=1)))
         policy = policies[method.kind]
         traj = jax.device_get(evaluate(exp, preset, env, method, policy, params[method.kind], spec, tasks, cfg.seed))
@@ -552,7 +574,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     (run_dir / "table.md").write_text(report.table(metrics, exp.columns, exp.paper, title=f"{exp.name} ({cfg.preset})",
                                                    notes=notes))
     t = time.time()
-    write_figures(exp, preset, env, run_dir, tasks, poses, model, params.get("caps"),
+    write_figures(exp, preset, env, run_dir, tasks, poses, caps_model, params.get("caps"),
                   next((m for m in methods if m.kind == "caps"), None), cem, cfg.seed, cfg.split)
     timings["figures_s"] = time.time() - t
     report.write_json(run_dir / "metrics.json", dict(out, timings_s=timings))
@@ -581,9 +603,16 @@ def compare(exp: Experiment, metrics: dict) -> dict:
 
 
 def holdout_losses(model, params, ds, holdout_ids, preset: Preset, label_sources, needed) -> dict:
-    """CAPs' per-cue loss on windows of held-out episodes (never trained on)."""
+    """CAPs' per-cue loss on windows of held-out episodes (never trained on).  For an ensemble: the members'
+    mean of each loss, and each member's losses under ``members`` (the loss is defined per model)."""
     if params is None or len(holdout_ids) == 0:
         return {}
+    if isinstance(model, capsjax.Ensemble):
+        members = [holdout_losses(model.member, model.member_params(params, i), ds, holdout_ids, preset,
+                                  label_sources, needed) for i in range(model.size)]
+        if any("error" in m for m in members):
+            return members[0]
+        return dict({k: float(np.mean([m[k] for m in members])) for k in members[0]}, members=members)
     try:
         sampler = data.make_sampler(ds, horizon=preset.horizon, episodes=holdout_ids, label_sources=label_sources,
                                     signals=tuple(s for s in needed if s not in label_sources),
@@ -630,6 +659,11 @@ def episode_mean(traj, signal: str) -> np.ndarray:
     return (values * active).sum(1) / np.maximum(active.sum(1), 1)
 
 
+# Preset fields added after evaluations were stored, with the value they implicitly had: left out of the
+# cache key at that value, so the stored evaluations stay valid.
+_PRESET_ADDED_LATER = {"ensemble": 1}
+
+
 def eval_cache_key(method: Method, preset: Preset, data_dir: Path, split: str, env, params) -> str:
     """What a stored evaluation depends on: the method, the preset, the data folder, the split, the env's
     config and the trained params themselves (a digest of their bytes), so a retrained model or a changed
@@ -639,7 +673,9 @@ def eval_cache_key(method: Method, preset: Preset, data_dir: Path, split: str, e
     and evaluations stored before the field existed stay valid (so do those stored before any later-added env
     field, at its old implicit value: ``collect.comparable_settings``)."""
     env_config = collect.comparable_settings(dataclasses.asdict(env.config))
-    return json.dumps({"method": dataclasses.asdict(method), "preset": dataclasses.asdict(preset),
+    preset_settings = {k: v for k, v in dataclasses.asdict(preset).items()
+                       if not (k in _PRESET_ADDED_LATER and v == _PRESET_ADDED_LATER[k])}
+    return json.dumps({"method": dataclasses.asdict(method), "preset": preset_settings,
                        "data_dir": str(data_dir), "env": env_config,
                        "params_sha256": params_digest(params), "split": split},
                       sort_keys=True, default=str)

@@ -351,3 +351,60 @@ def test_forest_large_is_medium_with_more_caps_steps():
     medium, large = forest.PRESETS["medium"], forest.PRESETS["large"]
     assert large.train_steps == 2 * medium.train_steps
     assert dataclasses.replace(large, train_steps=medium.train_steps) == medium
+
+
+def test_ensemble_members_train_apart_from_the_single_model(tmp_path):
+    """Member 0 is ``ensemble=1``'s model, resumed as it is; member i has its own checkpoints and key."""
+    env = FastEnv()
+    task = FastTask(obstacles=jnp.array([[5.5, 5.5, 0.01]] * 4), start=jnp.zeros(3))
+    model = capsjax.CAPsModel(capsjax.ModelConfig.from_env_spec(
+        env.spec, conv=((4, 3, 2),), obs_hidden=(16, 16), action_hidden=(8, 8), head_hidden=4, horizon=4))
+    windows = random_windows(env, jax.random.key(1), task, 32, model.horizon)
+
+    class Sampler:
+        def batches(self, batch_size):
+            return lambda key: jax.tree.map(lambda x: x[jax.random.randint(key, (batch_size,), 0, 32)], windows)
+
+    preset = dataclasses.replace(forest.PRESETS["ci"], train_steps=4, save_every=4, batch_size=8, ensemble=2)
+    cfg = pipeline.RunConfig(preset="ci", progress=False)
+    single = pipeline.train_caps(forest.EXPERIMENT, dataclasses.replace(preset, ensemble=1), model, Sampler(),
+                                 tmp_path, cfg)
+    first = pipeline.train_caps(forest.EXPERIMENT, preset, model, Sampler(), tmp_path, cfg)
+    second = pipeline.train_caps(forest.EXPERIMENT, preset, model, Sampler(), tmp_path, cfg, name="caps_member1",
+                                 member=1)
+    np.testing.assert_array_equal(ravel_pytree(first.params)[0], ravel_pytree(single.params)[0])
+    assert not np.allclose(ravel_pytree(second.params)[0], ravel_pytree(first.params)[0])
+    assert {p.name for p in (tmp_path / "checkpoints").iterdir()} == {"caps", "caps_member1"}
+    stacked = capsjax.Ensemble(model, 2).stack([first.params, second.params])
+    assert jax.tree.leaves(stacked)[0].shape[0] == 2
+
+
+def test_bad_ensemble_settings_stop_before_anything_is_written(tmp_path):
+    cfg = pipeline.RunConfig(preset="ci", out=tmp_path / "run", data_dir=tmp_path / "data", progress=False)
+    for bad, match in ((dict(ensemble=0), "Preset.ensemble must be an int >= 1"),
+                       (dict(ensemble=2, onpolicy_steps=100), "onpolicy_steps")):
+        with pytest.raises(SystemExit, match=match):
+            pipeline.run(forest.EXPERIMENT, {"ci": dataclasses.replace(forest.PRESETS["ci"], **bad)}, cfg)
+    assert not (tmp_path / "data").exists() and not (tmp_path / "run").exists()
+
+
+def test_eval_cache_key_keeps_stored_evaluations_of_single_models():
+    # Evaluations stored before ``Preset.ensemble`` existed keep their key at its implicit value, 1.
+    exp, preset = forest.EXPERIMENT, forest.PRESETS["ci"]
+    args = dict(method=exp.methods[0], data_dir=Path("d"), split="eval", env=envs.make("forest"),
+                params={"w": np.zeros(3, np.float32)})
+    single = pipeline.eval_cache_key(preset=preset, **args)
+    assert "ensemble" not in json.loads(single)["preset"]
+    assert pipeline.eval_cache_key(preset=dataclasses.replace(preset, ensemble=3), **args) != single
+
+
+@pytest.mark.slow
+def test_ci_preset_runs_with_a_caps_ensemble(tmp_path):
+    preset = dataclasses.replace(forest.PRESETS["ci"], ensemble=2)
+    cfg = pipeline.RunConfig(preset="ci", out=tmp_path / "run", data_dir=tmp_path / "data", methods=("caps",),
+                             progress=False)
+    out = pipeline.run(forest.EXPERIMENT, dict(forest.PRESETS, ci=preset), cfg)
+    assert len(out["holdout_loss"]["members"]) == 2
+    assert np.isfinite(out["metrics"]["caps"]["success_rate"]["mean"])
+    assert (tmp_path / "data" / "checkpoints" / "caps_member1").is_dir()
+    assert (tmp_path / "run" / "fpv.gif").stat().st_size > 0
