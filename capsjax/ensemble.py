@@ -8,7 +8,9 @@ pytree), so ``capsjax.plan`` and ``mpc.caps_policy`` take it unchanged.
 
 Params are the members' params stacked on a leading axis of length ``size`` (``Ensemble.stack``).  Each
 cue's prediction is the members' mean: the ensemble's predictive probability for a probability cue, the mean
-unit vector for an angle cue (the reward normalises it), the mean value otherwise.
+unit vector for an angle cue (the reward normalises it), the mean value otherwise.  Cues named in
+``max_cues`` take the members' maximum instead: for a cue the reward penalises (collision) that plans against
+the most pessimistic member, so a sequence only one member sees crashing is avoided.
 """
 from __future__ import annotations
 
@@ -31,10 +33,15 @@ class Ensemble:
 
     member: CAPsModel
     size: int
+    max_cues: tuple[str, ...] = ()  # cues combined by the members' maximum instead of their mean
 
     def __post_init__(self):
         if not isinstance(self.size, int) or isinstance(self.size, bool) or self.size < 1:
             raise ValueError(f"Ensemble.size must be an int >= 1, got {self.size!r}")
+        object.__setattr__(self, "max_cues", tuple(self.max_cues))
+        unknown = sorted(set(self.max_cues) - set(self.member.cue_names))
+        if unknown:
+            raise ValueError(f"Ensemble.max_cues names {unknown}, not cues of the model ({list(self.member.cue_names)})")
 
     # The planner and the reward read these from any predictor.
     @property
@@ -109,8 +116,10 @@ class Ensemble:
         return self._map_members(lambda p, c: self.member.rollout(p, c, actions), (params, carry))
 
     def rollout(self, params, carry: Carry, actions: jax.Array) -> dict[str, jax.Array]:
-        """The members' mean prediction ``{cue: f32[..., H] (angles f32[..., H, 2])}`` for ``f32[..., H, A]``."""
-        return jax.tree.map(lambda x: jnp.mean(x, axis=0), self.member_rollouts(params, carry, actions))
+        """The ensemble's prediction ``{cue: f32[..., H] (angles f32[..., H, 2])}`` for ``f32[..., H, A]``: the
+        members' mean, or their maximum for ``max_cues``."""
+        each = self.member_rollouts(params, carry, actions)
+        return {name: (jnp.max if name in self.max_cues else jnp.mean)(x, axis=0) for name, x in each.items()}
 
     def predict(self, params, obs, actions) -> dict[str, jax.Array]:
         return self.rollout(params, self.encode(params, obs), actions)

@@ -90,6 +90,7 @@ class Preset:
     # their mean prediction.  Member 0 is the single model of ``ensemble=1`` (``checkpoints/caps``); member i
     # trains in ``checkpoints/caps_member<i>``.
     ensemble: int = 1
+    ensemble_max_cues: tuple[str, ...] = ()  # Ensemble.max_cues: cues planned on by the members' maximum
 
 
 @dataclasses.dataclass(frozen=True)
@@ -463,6 +464,10 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         onpolicy_method(exp, preset)  # a bad onpolicy_reward fails now, not after collecting and training
     if not isinstance(preset.ensemble, int) or preset.ensemble < 1:
         raise SystemExit(f"Preset.ensemble must be an int >= 1 (models in the CAPs ensemble), got {preset.ensemble!r}")
+    unknown_cues = sorted(set(preset.ensemble_max_cues) - {c.name for c in exp.cues})
+    if unknown_cues or (preset.ensemble_max_cues and preset.ensemble == 1):
+        raise SystemExit(f"Preset.ensemble_max_cues must name cues of the CAPs model ({[c.name for c in exp.cues]}) "
+                         f"and needs ensemble > 1; got {list(preset.ensemble_max_cues)} with ensemble={preset.ensemble}")
     if preset.ensemble > 1 and preset.onpolicy_steps:
         raise SystemExit("Preset.ensemble > 1 with Preset.onpolicy_steps > 0 is not supported: the on-policy "
                          "stage continues one CAPs model; use ensemble=1 or onpolicy_steps=0")
@@ -487,7 +492,8 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
 
     model = capsjax.CAPsModel(model_config(exp, preset, env))
     # What the CAPs methods plan with: the model, or the ensemble of ``preset.ensemble`` such models.
-    caps_model = capsjax.Ensemble(model, preset.ensemble) if preset.ensemble > 1 else model
+    caps_model = (capsjax.Ensemble(model, preset.ensemble, max_cues=preset.ensemble_max_cues)
+                  if preset.ensemble > 1 else model)
     label_sources = {cue: "segmenter" for cue in exp.learned_cues}
     needed = sorted({c.source for c in exp.cues} | {"collision", "speed", "heading"})
     sampler = data.make_sampler(ds, horizon=preset.horizon, episodes=train_ids, label_sources=label_sources,
@@ -661,7 +667,7 @@ def episode_mean(traj, signal: str) -> np.ndarray:
 
 # Preset fields added after evaluations were stored, with the value they implicitly had: left out of the
 # cache key at that value, so the stored evaluations stay valid.
-_PRESET_ADDED_LATER = {"ensemble": 1}
+_PRESET_ADDED_LATER = {"ensemble": 1, "ensemble_max_cues": ()}
 
 
 def eval_cache_key(method: Method, preset: Preset, data_dir: Path, split: str, env, params) -> str:

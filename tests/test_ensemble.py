@@ -79,3 +79,19 @@ def test_the_planner_takes_an_ensemble_like_a_model():
     # The planner's reported prediction of its choice is the ensemble's (the members' mean).
     want = ens.rollout(params, ens.encode(params, _obs(SMALL)), info["actions"])
     np.testing.assert_allclose(np.asarray(info["preds"]["collision"]), np.asarray(want["collision"]), rtol=1e-5)
+
+
+def test_max_cues_take_the_most_pessimistic_member():
+    model, members = _members(3)
+    ens = Ensemble(model, 3, max_cues=("collision",))
+    params = ens.stack(members)
+    obs = _obs(SMALL, key=5)
+    actions = jax.random.uniform(jax.random.key(2), (6, SMALL.horizon, 2), minval=-3.0, maxval=3.0)
+    each = [model.predict(p, obs, actions) for p in members]
+    got = ens.predict(params, obs, actions)
+    np.testing.assert_allclose(np.asarray(got["collision"]), np.max([np.asarray(e["collision"]) for e in each], 0),
+                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(got["speed"]), np.mean([np.asarray(e["speed"]) for e in each], 0),
+                               rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match=r"max_cues names \['colision'\]"):
+        Ensemble(model, 3, max_cues=("colision",))

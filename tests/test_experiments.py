@@ -382,7 +382,9 @@ def test_ensemble_members_train_apart_from_the_single_model(tmp_path):
 def test_bad_ensemble_settings_stop_before_anything_is_written(tmp_path):
     cfg = pipeline.RunConfig(preset="ci", out=tmp_path / "run", data_dir=tmp_path / "data", progress=False)
     for bad, match in ((dict(ensemble=0), "Preset.ensemble must be an int >= 1"),
-                       (dict(ensemble=2, onpolicy_steps=100), "onpolicy_steps")):
+                       (dict(ensemble=2, onpolicy_steps=100), "onpolicy_steps"),
+                       (dict(ensemble=2, ensemble_max_cues=("colision",)), "ensemble_max_cues must name cues"),
+                       (dict(ensemble_max_cues=("collision",)), "needs ensemble > 1")):
         with pytest.raises(SystemExit, match=match):
             pipeline.run(forest.EXPERIMENT, {"ci": dataclasses.replace(forest.PRESETS["ci"], **bad)}, cfg)
     assert not (tmp_path / "data").exists() and not (tmp_path / "run").exists()
@@ -394,7 +396,7 @@ def test_eval_cache_key_keeps_stored_evaluations_of_single_models():
     args = dict(method=exp.methods[0], data_dir=Path("d"), split="eval", env=envs.make("forest"),
                 params={"w": np.zeros(3, np.float32)})
     single = pipeline.eval_cache_key(preset=preset, **args)
-    assert "ensemble" not in json.loads(single)["preset"]
+    assert not {"ensemble", "ensemble_max_cues"} & set(json.loads(single)["preset"])
     assert pipeline.eval_cache_key(preset=dataclasses.replace(preset, ensemble=3), **args) != single
 
 
