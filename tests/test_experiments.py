@@ -320,8 +320,8 @@ def test_onpolicy_stage_collects_with_the_first_model_and_continues_training(tmp
     assert data.Dataset.open(str(tmp_path / "data" / "onpolicy.zarr")).num_steps == ds_on.num_steps
 
 
-def test_checkpoints_trained_on_other_windows_are_refused_not_resumed(tmp_path):
-    """A preset that turns ``mirror`` on must not resume the unmirrored model of an older run."""
+def _tiny_model_and_sampler():
+    """A tiny CAPs model and a sampler of 32 random-action windows of the fast world, for training-stage tests."""
     env = FastEnv()
     task = FastTask(obstacles=jnp.array([[5.5, 5.5, 0.01]] * 4), start=jnp.zeros(3))
     model = capsjax.CAPsModel(capsjax.ModelConfig.from_env_spec(
@@ -332,16 +332,22 @@ def test_checkpoints_trained_on_other_windows_are_refused_not_resumed(tmp_path):
         def batches(self, batch_size):
             return lambda key: jax.tree.map(lambda x: x[jax.random.randint(key, (batch_size,), 0, 32)], windows)
 
+    return model, Sampler()
+
+
+def test_checkpoints_trained_on_other_windows_are_refused_not_resumed(tmp_path):
+    """A preset that turns ``mirror`` on must not resume the unmirrored model of an older run."""
+    model, sampler = _tiny_model_and_sampler()
     preset = dataclasses.replace(forest.PRESETS["ci"], mirror=False, train_steps=4, save_every=4, batch_size=8)
     cfg = pipeline.RunConfig(preset="ci", progress=False)
-    first = pipeline.train_caps(forest.EXPERIMENT, preset, model, Sampler(), tmp_path, cfg)
-    again = pipeline.train_caps(forest.EXPERIMENT, preset, model, Sampler(), tmp_path, cfg)  # resumed as it is
+    first = pipeline.train_caps(forest.EXPERIMENT, preset, model, sampler, tmp_path, cfg)
+    again = pipeline.train_caps(forest.EXPERIMENT, preset, model, sampler, tmp_path, cfg)  # resumed as it is
     assert int(again.step) == 4
     np.testing.assert_array_equal(ravel_pytree(again.params)[0], ravel_pytree(first.params)[0])
     mirrored = dataclasses.replace(preset, mirror=True)
     with pytest.raises(checkpoint.ConfigMismatchError, match=r"TrainingWindows\.mirror: saved false != requested true"
                                                               r".*another --data-dir"):
-        pipeline.train_caps(forest.EXPERIMENT, mirrored, model, Sampler(), tmp_path, cfg)
+        pipeline.train_caps(forest.EXPERIMENT, mirrored, model, sampler, tmp_path, cfg)
     assert sorted(p.name for p in (tmp_path / "checkpoints" / "caps").iterdir() if p.name.isdigit()) == ["4"]
 
 
@@ -355,22 +361,13 @@ def test_forest_large_is_medium_with_more_caps_steps():
 
 def test_ensemble_members_train_apart_from_the_single_model(tmp_path):
     """Member 0 is ``ensemble=1``'s model, resumed as it is; member i has its own checkpoints and key."""
-    env = FastEnv()
-    task = FastTask(obstacles=jnp.array([[5.5, 5.5, 0.01]] * 4), start=jnp.zeros(3))
-    model = capsjax.CAPsModel(capsjax.ModelConfig.from_env_spec(
-        env.spec, conv=((4, 3, 2),), obs_hidden=(16, 16), action_hidden=(8, 8), head_hidden=4, horizon=4))
-    windows = random_windows(env, jax.random.key(1), task, 32, model.horizon)
-
-    class Sampler:
-        def batches(self, batch_size):
-            return lambda key: jax.tree.map(lambda x: x[jax.random.randint(key, (batch_size,), 0, 32)], windows)
-
+    model, sampler = _tiny_model_and_sampler()
     preset = dataclasses.replace(forest.PRESETS["ci"], train_steps=4, save_every=4, batch_size=8, ensemble=2)
     cfg = pipeline.RunConfig(preset="ci", progress=False)
-    single = pipeline.train_caps(forest.EXPERIMENT, dataclasses.replace(preset, ensemble=1), model, Sampler(),
+    single = pipeline.train_caps(forest.EXPERIMENT, dataclasses.replace(preset, ensemble=1), model, sampler,
                                  tmp_path, cfg)
-    first = pipeline.train_caps(forest.EXPERIMENT, preset, model, Sampler(), tmp_path, cfg)
-    second = pipeline.train_caps(forest.EXPERIMENT, preset, model, Sampler(), tmp_path, cfg, name="caps_member1",
+    first = pipeline.train_caps(forest.EXPERIMENT, preset, model, sampler, tmp_path, cfg)
+    second = pipeline.train_caps(forest.EXPERIMENT, preset, model, sampler, tmp_path, cfg, name="caps_member1",
                                  member=1)
     np.testing.assert_array_equal(ravel_pytree(first.params)[0], ravel_pytree(single.params)[0])
     assert not np.allclose(ravel_pytree(second.params)[0], ravel_pytree(first.params)[0])
