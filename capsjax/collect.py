@@ -297,7 +297,9 @@ def _flatten(record: Record) -> dict:
 # Env config fields added after datasets and evaluations were stored, keyed by their path in the config, with
 # the value every earlier config implicitly had: at that value they are left out of the comparison, so the
 # stored work of older versions stays valid, and any other value tells the configs apart.
-_ADDED_LATER = {("camera", "projection"): "pinhole"}
+_ADDED_LATER = {("camera", "projection"): "pinhole",
+                # the forest's goal path for the reward's path term (2026-12-06); info only, nothing stored
+                ("goal_path_length",): 10.0, ("goal_path_points",): 16}
 
 
 def comparable_settings(settings: dict) -> dict:
@@ -306,10 +308,19 @@ def comparable_settings(settings: dict) -> dict:
     -- and a dataset is reused across it), and without later-added fields at their old implicit values
     (``_ADDED_LATER``).  Datasets of older versions, whose env config lacked those fields, stay usable."""
     out = {k: v for k, v in settings.items() if k != "history"}
-    for (outer, inner), old in _ADDED_LATER.items():
-        if isinstance(out.get(outer), dict) and out[outer].get(inner, old) == old:
-            out[outer] = {k: v for k, v in out[outer].items() if k != inner}
+    for field_path, old in _ADDED_LATER.items():
+        out = _without_default(out, field_path, old)
     return out
+
+
+def _without_default(settings: dict, field_path: tuple, old) -> dict:
+    """``settings`` without the field at ``field_path`` when it holds ``old`` (or is absent)."""
+    head, *rest = field_path
+    if not rest:
+        return {k: v for k, v in settings.items() if not (k == head and v == old)}
+    if not isinstance(settings.get(head), dict):
+        return settings
+    return dict(settings, **{head: _without_default(settings[head], tuple(rest), old)})
 
 
 def collect(env_name_or_env, policy: mpc.Policy, params, spec, *, path, num_steps: int, num_robots: int,

@@ -10,7 +10,9 @@ from the path, m).  CAPs drives with the paper's forest reward ``500 (1 - c) + c
 GC-DQL and GC-DQL-sep with the paper's baseline reward (its speed goal 2 m/s).  Beyond the paper
 (Q1): the same CAPs model follows the paths at a goal speed of 2 m/s (about twice its speed
 under the paper's reward), a reward term no training step
-and no paper experiment used.
+and no paper experiment used; and it keeps to the path itself (``caps_path``): the predicted speeds and
+headings compose into the positions the car will pass, and the reward subtracts their distance from the
+path (``reward`` term ``path``), a quantity no cue predicts.
 """
 from __future__ import annotations
 
@@ -112,6 +114,9 @@ EXPERIMENT = pipeline.Experiment(
                description="one head per sub-reward, combined with the same weights"),
         Method("caps_2ms", "caps", {"collision": 500.0, "heading_cos": 1.0, "speed": 1.0}, goal_speed=2.0, novel=True,
                description="novel reward (Q1): the same model follows the path at a goal speed of 2 m/s"),
+        Method("caps_path", "caps", {"collision": 500.0, "heading_cos": 1.0, "path": 1.0}, novel=True,
+               description="novel reward (Q1): minus the distance (m) from the path of the positions "
+                           "dead-reckoned from the predicted speed and heading"),
     ),
     episode_metrics=None,  # set below
     columns=(("success_rate", "success", "rate"), ("success_drivable", "success, drivable paths", "rate"),

@@ -277,7 +277,7 @@ def onpolicy_stage(exp: Experiment, preset: Preset, env, model, params, data_dir
                          num_steps=preset.onpolicy_steps, num_robots=preset.collect_robots,
                          key=jax.random.key(cfg.train_seed + 3), labelled_fraction=preset.labelled_fraction,
                          episode_length=preset.episode_length, policy_name=name, progress=cfg.progress,
-                         update_spec=goal_heading_from_env)
+                         update_spec=goals_from_env)
     log(exp, f"on-policy dataset: {ds.num_episodes} episodes, {ds.num_steps} steps ({time.time() - t:.0f} s)")
     return ds
 
@@ -406,11 +406,15 @@ def train_baseline(exp: Experiment, preset: Preset, kind: str, model_cfg, env, s
     return agent, state.params
 
 
-def goal_heading_from_env(state, spec: RewardSpec) -> RewardSpec:
+def goals_from_env(state, spec: RewardSpec) -> RewardSpec:
     """Every scene reports the wanted heading (path tangent ahead, direction to the goal, the latest
-    command) as ``info['goal_heading']`` in radians; the reward wants it as a unit vector."""
+    command) as ``info['goal_heading']`` in radians; the reward wants it as a unit vector.  Scenes
+    with a path (the forest) also report the stretch ahead as ``info['goal_path']``."""
     h = state.info["goal_heading"]
-    return spec.with_goals(goal_heading=jnp.stack([jnp.cos(h), jnp.sin(h)]))
+    spec = spec.with_goals(goal_heading=jnp.stack([jnp.cos(h), jnp.sin(h)]))
+    if "goal_path" in state.info:
+        spec = spec.with_goals(goal_path=state.info["goal_path"])
+    return spec
 
 
 def cem_config(preset: Preset, env, horizon: int) -> capsjax.CEMConfig:
@@ -431,11 +435,11 @@ def evaluate(exp: Experiment, preset: Preset, env, method: Method, policy: mpc.P
     keys = jax.random.split(jax.random.key(2_000_000 + seed), n)
     if record_images:
         one = lambda task, key: mpc.run_episode(env, policy, params, spec, task, key, num_steps=preset.eval_steps,
-                                                update_spec=goal_heading_from_env, record_images=True)
+                                                update_spec=goals_from_env, record_images=True)
         return jax.jit(one)(jax.tree.map(lambda x: x[0], tasks), keys[0])
     mesh = sharding.make_mesh(_largest_divisor(n, jax.local_device_count()))
     return sharding.run_episodes(env, policy, params, spec, tasks, keys, num_steps=preset.eval_steps, mesh=mesh,
-                                 update_spec=goal_heading_from_env)
+                                 update_spec=goals_from_env)
 
 
 def _largest_divisor(n: int, most: int) -> int:
@@ -597,7 +601,7 @@ def task_metrics(exp: Experiment, tasks, env, per_episode: dict) -> dict:
 
 def method_spec(method: Method, model) -> RewardSpec:
     return RewardSpec.from_terms(model, goal_speed=method.goal_speed, lane_offset=method.lane_offset,
-                                 gated=method.gated, **dict(method.weights))
+                                 gated=method.gated, step_seconds=envs.base.CONTROL_DT, **dict(method.weights))
 
 
 def compare(exp: Experiment, metrics: dict) -> dict:

@@ -188,6 +188,9 @@ def test_comparable_settings_leave_out_history_and_later_fields_at_their_old_val
     wide = {**now, "camera": {**now["camera"], "projection": "cylindrical"}}
     assert collect.comparable_settings(wide) != collect.comparable_settings(old)
     assert collect.comparable_settings({"history": 4}) == {}
+    # A later top-level field (the forest's goal path) at its old value is left out; another value is kept.
+    assert collect.comparable_settings({**now, "goal_path_points": 16}) == collect.comparable_settings(old)
+    assert collect.comparable_settings({**now, "goal_path_points": 8})["goal_path_points"] == 8
 
 
 COLLECTOR = textwrap.dedent("""

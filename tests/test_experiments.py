@@ -207,6 +207,23 @@ def test_every_method_plans_with_the_presets_return_mode():
         pipeline.cem_config(dataclasses.replace(preset, cem_return="median"), env, horizon=4)
 
 
+def test_goals_from_env_passes_the_forest_path_and_leaves_other_specs_alone():
+    class Model:
+        cue_names, action_low, action_high = ("collision", "speed", "heading"), (-30.0, 0.5), (30.0, 3.0)
+
+    spec = pipeline.method_spec(pipeline.Method("p", "caps", {"collision": 1.0, "path": 1.0}), Model())
+    assert float(spec.step_seconds) == envs.base.CONTROL_DT
+    forest_env, city_env = envs.make("forest"), envs.make("city")
+    state = forest_env.reset(jax.random.key(0), forest_env.sample_task(jax.random.key(1), "val"))
+    out = pipeline.goals_from_env(state, spec)
+    np.testing.assert_allclose(out.goal_path, state.info["goal_path"])
+    h = float(state.info["goal_heading"])
+    np.testing.assert_allclose(out.goal_heading, [np.cos(h), np.sin(h)], atol=1e-6)
+    city_state = city_env.reset(jax.random.key(0), city_env.sample_task(jax.random.key(1), "val"))
+    assert "goal_path" not in city_state.info
+    np.testing.assert_allclose(pipeline.goals_from_env(city_state, spec).goal_path, spec.goal_path)
+
+
 def test_warm_start_reaches_the_caps_planner_only():
     # The one-step baselines' planner has no sequence to shift, so the preset's warm start is CAPs' alone.
     env = envs.make("forest")

@@ -79,6 +79,10 @@ def test_term_needing_a_missing_cue_is_refused():
     (dict(goal_heading=(1.0, 0.0, 0.0)), "goal_heading"),
     (dict(goal_speed=(1.0, 2.0)), "goal_speed"),
     (dict(goal_speed=float("nan")), "goal_speed"),
+    (dict(goal_path=((0.0, 0.0),)), "goal_path"),
+    (dict(goal_path=((0.0, 0.0), (float("nan"), 1.0))), "goal_path"),
+    (dict(path=1.0), "step_seconds"),
+    (dict(path_tolerance=-1.0), "path_tolerance"),
 ])
 def test_bad_specs_name_the_field(kwargs, field):
     with pytest.raises(ValueError, match=field):
@@ -94,3 +98,29 @@ def test_batched_candidates():
 def test_nan_prediction_gives_nan_value_not_a_crash():
     spec = RewardSpec.from_terms(_Model(), collision=1)
     assert np.isnan(float(reward.value(_preds(coll=float("nan")), jnp.zeros((3, 2)), spec)))
+
+
+def test_path_term_scores_the_dead_reckoned_distance_to_the_goal_path():
+    # Driving +x at 2 m/s for 3 steps of 0.5 s reaches x = 1, 2, 3; a path along y = 1 is 1 m off every step.
+    spec = RewardSpec.from_terms(_Model(), path=1.0, step_seconds=0.5, goal_path=((-1.0, 1.0), (10.0, 1.0)))
+    a = jnp.zeros((3, 2))
+    np.testing.assert_allclose(reward.value(_preds(speed=2.0, heading=(1.0, 0.0)), a, spec), -3.0, rtol=1e-5)
+    # Past the path's end the distance is to its last vertex: a path ending at (1, 0) is 0, 1 and 2 m away.
+    short = spec.with_goals(goal_path=((-1.0, 0.0), (1.0, 0.0)))
+    np.testing.assert_allclose(reward.value(_preds(speed=2.0, heading=(1.0, 0.0)), a, short), -3.0, rtol=1e-5)
+    # Heading along the path beats heading away from it, and the distance grows with speed.
+    along = reward.value(_preds(heading=(1.0, 0.0)), a, spec.with_goals(goal_path=((0.0, 0.0), (9.0, 0.0))))
+    away = reward.value(_preds(heading=(0.0, -1.0)), a, spec.with_goals(goal_path=((0.0, 0.0), (9.0, 0.0))))
+    assert float(along) == pytest.approx(0.0, abs=1e-6) and float(away) < -5.0
+    # A tolerance leaves the first metres free: 1 m off with 0.5 m free costs 0.5 per step.
+    loose = RewardSpec.from_terms(_Model(), path=1.0, step_seconds=0.5, path_tolerance=0.5,
+                                  goal_path=((-1.0, 1.0), (10.0, 1.0)))
+    np.testing.assert_allclose(reward.value(_preds(speed=2.0, heading=(1.0, 0.0)), a, loose), -1.5, rtol=1e-5)
+
+
+def test_polyline_distance_matches_a_brute_force_sampling():
+    path = jnp.asarray([[0.0, 0.0], [2.0, 0.0], [2.0, 3.0], [-1.0, 4.0]])
+    points = jax.random.uniform(jax.random.key(0), (50, 2), minval=-3.0, maxval=5.0)
+    fine = jnp.concatenate([a + jnp.linspace(0, 1, 2001)[:, None] * (b - a) for a, b in zip(path[:-1], path[1:])])
+    brute = jnp.min(jnp.linalg.norm(points[:, None] - fine[None], axis=-1), axis=1)
+    np.testing.assert_allclose(reward.polyline_distance(points, path), brute, atol=3e-3)

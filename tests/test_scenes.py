@@ -231,6 +231,29 @@ def test_windowed_projection_follows_a_car_cutting_a_corner():
     assert float(s) == pytest.approx(12.0) and float(d) == pytest.approx(np.hypot(3.0, 0.5), rel=1e-5)
 
 
+def test_forest_goal_path_is_the_stretch_ahead_relative_to_the_car():
+    """``info['goal_path']`` starts at the car's projection on the path and runs ``goal_path_length`` m on,
+    in the car-at-origin frame the reward's path term dead-reckons in."""
+    from envs.scenes.common import path_ahead, polyline_lengths
+
+    route = jnp.asarray([[0.0, 0.0], [4.0, 0.0], [4.0, 20.0]])
+    ahead = np.asarray(path_ahead(route, jnp.asarray(2.0), jnp.asarray([2.0, -1.0]), 6.0, 7))
+    np.testing.assert_allclose(ahead[0], [0.0, 1.0], atol=1e-6)  # the projection, 1 m left of the car
+    np.testing.assert_allclose(ahead[-1], [2.0, 5.0], atol=1e-6)  # 6 m on: round the corner, 4 m up
+    assert float(polyline_lengths(jnp.asarray(ahead))[-1]) == pytest.approx(6.0, rel=1e-5)
+    env = envs.make("forest")
+    state = env.reset(jax.random.key(0), env.sample_task(jax.random.key(1), "eval"))
+    path = np.asarray(state.info["goal_path"])
+    assert path.shape == (env.config.goal_path_points, 2)
+    np.testing.assert_allclose(path[0], [0.0, 0.0], atol=1e-5)  # episodes start on the path
+    state = env.step(state, jnp.asarray([0.0, 2.0]))
+    expected = path_ahead(state.task.path, state.info["path_s"], state.info["pose"][:2],
+                          env.config.goal_path_length, env.config.goal_path_points)
+    np.testing.assert_allclose(state.info["goal_path"], expected, atol=1e-6)
+    with pytest.raises(ValueError, match="goal_path_points"):
+        envs.make("forest", goal_path_points=1)
+
+
 def test_sharpest_bend_is_the_tightest_circle_through_the_path():
     from envs.scenes.common import sharpest_bend
 

@@ -24,7 +24,9 @@ log = logging.getLogger(__name__)
 
 KINDS = ("dql", "gc_dql", "gc_dql_sep")
 GOAL_KEYS = ("goal_speed", "goal_heading_x", "goal_heading_y")
-SUB_REWARDS = tuple(n for n in reward_lib.TERM_NAMES if n != "collision")
+# The baselines' goals are a speed and a heading (GOAL_KEYS): a term scored against a goal path would need
+# the path in their input, so "path" is no sub-reward of theirs.
+SUB_REWARDS = tuple(n for n in reward_lib.TERM_NAMES if n not in ("collision", "path"))
 # Signals the sub-reward terms read, by the cue names the reward library expects.
 SIGNAL_CUES = ("collision", "speed", "heading", "lane_seen", "lane_diff", "door_frac")
 

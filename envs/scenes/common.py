@@ -237,6 +237,14 @@ def path_point(path: jax.Array, s: jax.Array):
     return point, jnp.arctan2(seg[1], seg[0])
 
 
+def path_ahead(path: jax.Array, s: jax.Array, xy: jax.Array, length: float, num: int) -> jax.Array:
+    """``num`` points f32[num, 2] of the polyline from arc length ``s`` to ``s + length`` (clamped at its
+    end), relative to ``xy``: the stretch of path a planner's horizon can reach, in the frame of the
+    positions it dead-reckons (world-aligned, the car at the origin)."""
+    points, _ = jax.vmap(lambda si: path_point(path, si))(s + jnp.linspace(0.0, length, num))
+    return points - xy
+
+
 def running_mean(mean: jax.Array, value: jax.Array, count: jax.Array) -> jax.Array:
     """Mean of ``count`` values given the mean of the first ``count - 1``."""
     return mean + (value - mean) / jnp.maximum(count, 1).astype(jnp.float32)

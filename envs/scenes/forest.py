@@ -15,7 +15,8 @@ amplitude and wavelength crossing the arena in one of four directions, from a di
 The paths ignore the obstacles (as in the paper): the car has to leave the path to get around a tree.
 ``info['goal_heading']`` points from the car to the path point ``lookahead`` m ahead of the car's
 projection on it (a pursuit point: on the path this is about the tangent; off the path, after going
-round a tree, it leads back to the path instead of running parallel to it).
+round a tree, it leads back to the path instead of running parallel to it).  ``info['goal_path']`` is
+the next ``goal_path_length`` m of the path relative to the car, for the reward's ``path`` term.
 
 Metrics: ``path_distance`` (now) and ``mean_path_distance`` (the paper's average distance from the
 path, m), ``progress`` (fraction of the path's length covered, monotone), ``crash`` (0/1).  The episode
@@ -58,6 +59,16 @@ class ForestConfig(common.SceneConfig):
     sine_wavelength: tuple[float, float] = (8.0, 16.0)
     path_margin: float = 3.0  # paths keep this far from the walls
     finish_tolerance: float = 0.5  # m before the path's end that counts as finished
+    # info['goal_path']: the path from the car's projection this far ahead (m), as this many points; 10 m
+    # is more than the fastest plan (3 m/s over 12 steps of 0.25 s) can reach.
+    goal_path_length: float = 10.0
+    goal_path_points: int = 16
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.goal_path_points < 2 or not self.goal_path_length > 0:
+            raise ValueError(f"goal_path_points must be >= 2 and goal_path_length > 0 m, got "
+                             f"{self.goal_path_points} and {self.goal_path_length}")
 
     @property
     def grid(self) -> int:
@@ -112,7 +123,7 @@ class ForestEnv(common.SceneEnv):
 
     def task_init(self, task: ForestTask, pose):
         s, dist = common.project_on_path(task.path, pose[:2], 0.0, 0.0)
-        info = {"path_s": s, "goal_heading": self._goal_heading(task, s, pose)}
+        info = self._goal_info(task, s, pose)
         zero = jnp.zeros((), jnp.float32)
         metrics = {"path_distance": dist, "mean_path_distance": dist, "progress": zero, "crash": zero,
                    "steps": zero}
@@ -135,8 +146,12 @@ class ForestEnv(common.SceneEnv):
             "crash": jnp.maximum(m["crash"], signals["collision"]),
             "steps": steps,
         }
-        info = {"path_s": s, "goal_heading": self._goal_heading(task, s, pose)}
-        return info, metrics, s >= length - self.config.finish_tolerance
+        return self._goal_info(task, s, pose), metrics, s >= length - self.config.finish_tolerance
+
+    def _goal_info(self, task, s, pose):
+        cfg = self.config
+        return {"path_s": s, "goal_heading": self._goal_heading(task, s, pose),
+                "goal_path": common.path_ahead(task.path, s, pose[:2], cfg.goal_path_length, cfg.goal_path_points)}
 
     def _goal_heading(self, task, s, pose):
         point, tangent = common.path_point(task.path, s + self.config.lookahead)
