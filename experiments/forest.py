@@ -68,6 +68,9 @@ PRESETS = {
     # 20k steps of on-policy CAPs data plus 10k more CAPs steps (62.5 %, the preset 64 %), episodes
     # starting anywhere in the arena (56 %), collision weight 200 or 50 instead of 500 (61 %, 55 %).
     # The planner's own noise there: two other planner keys gave 59 % and 56 % (key 0: 66 %).
+    # Also on 128 'val' paths (2026-12-06, an AVX-512 host, evaluation only): collision risk below 0.05 per step
+    # left free, -13 points; plans within 0.05 summed risk of the population's safest ranked by heading alone,
+    # -10 points (-5.5 with the speed held near 1 m/s): fewer wall crashes, many more tree crashes (README).
     # Half of the training windows mirrored left-right (``mirror``; the forest has no handedness), chosen
     # on 64 'val' paths on one host (2026-12-04): success 45 % -> 55 %, held-out collision loss 0.141 ->
     # 0.105, at no cost in time.  The same settings without mirroring gave 64 % on 'val' on the host of
