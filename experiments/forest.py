@@ -71,6 +71,8 @@ PRESETS = {
     # Also on 128 'val' paths (2026-12-06, an AVX-512 host, evaluation only): collision risk below 0.05 per step
     # left free, -13 points; plans within 0.05 summed risk of the population's safest ranked by heading alone,
     # -10 points (-5.5 with the speed held near 1 m/s): fewer wall crashes, many more tree crashes (README).
+    # Retrained with three training seeds (2026-12-06, 384 paired 'val' paths): episodes starting anywhere,
+    # -4.9 points [-11.7, +1.8], as many wall crashes; random actions held 2 steps, -22 [-32, -12] on one seed.
     # Half of the training windows mirrored left-right (``mirror``; the forest has no handedness), chosen
     # on 64 'val' paths on one host (2026-12-04): success 45 % -> 55 %, held-out collision loss 0.141 ->
     # 0.105, at no cost in time.  The same settings without mirroring gave 64 % on 'val' on the host of
