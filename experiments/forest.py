@@ -83,6 +83,7 @@ PRESETS = {
     # -28 points [-42, -14], held-out collision loss 0.126 against 0.102; the pursuit point 3 or 4 m ahead
     # (env ``lookahead``, evaluation only): 83 of 128 each against 79, +3 points [-5, +12].
     # The 4 m pursuit point on three training seeds (2026-12-06, 384 paired paths): +5.7 points [-0.3, +11.7].
+    # On four more training seeds, a host without AVX-512 (512 paired paths): +5.1 points [-0.2, +11.1]; kept at 2 m.
     "small": SMALL,
     # Four times `small`'s data and CAPs steps (three data steps per CAPs step, as in `small`): far over the
     # 30-minute budget (CAPs alone ~50 minutes on the 2-core CPU, ~2 hours with the baselines), hence a preset
