@@ -208,6 +208,11 @@ class RunConfig:
     """Seed of collection, labelling and training (independent of the evaluation seed)."""
     methods: tuple[str, ...] = ()
     """Evaluate only these methods (default: all of the experiment's)."""
+    eval_env: dict[str, float] = dataclasses.field(default_factory=dict)
+    """Env config fields changed for the evaluation only, as name-value pairs (``--eval-env lookahead 4``: the
+    forest's pursuit point 4 m ahead).  Collection, labelling and training keep the experiment's env, so the
+    stored dataset and models are reused; the fields must leave the env's spec (observations, actions) as it
+    is.  Evaluations are cached per env config, so give such a run its own ``--out``."""
     progress: bool = True
     """Progress bars for every long stage."""
     smoke: bool = False
@@ -475,12 +480,14 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     if preset.ensemble > 1 and preset.onpolicy_steps:
         raise SystemExit("Preset.ensemble > 1 with Preset.onpolicy_steps > 0 is not supported: the on-policy "
                          "stage continues one CAPs model; use ensemble=1 or onpolicy_steps=0")
+    env = envs.make(exp.env_name, **dict(exp.env_overrides))
+    eval_env = evaluation_env(exp, env, cfg.eval_env)  # checked before any folder is made
     run_dir, data_dir = resolve_paths(exp, cfg)
     timings: dict[str, float] = {}
-    env = envs.make(exp.env_name, **dict(exp.env_overrides))
     report.write_json(run_dir / "config.json", {
         "experiment": exp.name, "run": dataclasses.asdict(cfg), "preset": dataclasses.asdict(preset),
-        "env": exp.env_name, "env_overrides": dict(exp.env_overrides), "cues": [c.name for c in exp.cues],
+        "env": exp.env_name, "env_overrides": dict(exp.env_overrides), "eval_env": dict(cfg.eval_env),
+        "cues": [c.name for c in exp.cues],
         "methods": [dataclasses.asdict(m) for m in exp.methods], "device": jax.devices()[0].device_kind,
         "data_dir": str(data_dir)})
 
@@ -540,6 +547,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
 
     holdout_loss = holdout_losses(caps_model, params.get("caps"), ds, holdout_ids, preset, label_sources, needed)
 
+    env = eval_env  # from here on: evaluation
     tasks = eval_tasks(env, preset, cfg.seed, cfg.split)
     cem = cem_config(preset, env, preset.horizon)
     poses, per_episode, policies = {}, {}, {}
@@ -571,7 +579,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     verdict = compare(exp, metrics)
     out = {
         "experiment": exp.name, "preset": cfg.preset, "seed": cfg.seed, "split": cfg.split, "train_seed": cfg.train_seed,
-        "metrics": metrics, "paper": exp.paper, "comparison": verdict, "labeller": labeller_quality,
+        "eval_env": dict(cfg.eval_env), "metrics": metrics, "paper": exp.paper, "comparison": verdict, "labeller": labeller_quality,
         "holdout_loss": holdout_loss, "dataset": {"episodes": ds.num_episodes, "steps": ds.num_steps,
                                                   "train_episodes": len(train_ids), "holdout_episodes": len(holdout_ids)},
         "timings_s": timings, "device": jax.devices()[0].device_kind,
@@ -581,6 +589,9 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     notes = list(exp.notes) + [f"Preset `{cfg.preset}`, {cfg.split} seed {cfg.seed}, {preset.eval_episodes} {cfg.split} episodes of "
                                f"at most {preset.eval_steps} steps; cells: mean [95 % bootstrap CI over episodes]."]
     notes += [f"{m.name}: {m.description}" for m in methods if m.description]
+    if cfg.eval_env:
+        notes.append("Evaluated with env fields changed from training's: "
+                     + ", ".join(f"{k} = {v:g}" for k, v in sorted(cfg.eval_env.items())) + ".")
     (run_dir / "table.md").write_text(report.table(metrics, exp.columns, exp.paper, title=f"{exp.name} ({cfg.preset})",
                                                    notes=notes))
     t = time.time()
@@ -591,6 +602,38 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     print((run_dir / "table.md").read_text())
     log(exp, f"wrote {run_dir}")
     return out
+
+
+def evaluation_env(exp: Experiment, env, overrides: Mapping[str, float]):
+    """The env the methods are evaluated in: the experiment's env with the number fields ``overrides``
+    (``RunConfig.eval_env``) replaced.  A trained model needs the observations and actions it was trained on,
+    so a change to the env's spec is refused (change ``Experiment.env_overrides`` and retrain instead)."""
+    if not overrides:
+        return env
+    current = {f.name: getattr(env.config, f.name) for f in dataclasses.fields(env.config)}
+    typed = {}
+    for name, value in overrides.items():
+        if name not in current:
+            raise SystemExit(f"--eval-env names unknown config field {name!r} of env {exp.env_name!r}; valid: "
+                             f"{', '.join(sorted(current))}")
+        have = current[name]
+        if isinstance(have, bool) or not isinstance(have, (int, float)):
+            raise SystemExit(f"--eval-env field {name!r}: only number fields can be set; this env's {name} is {have!r}")
+        if isinstance(have, int):
+            if value != int(value):
+                raise SystemExit(f"--eval-env field {name!r}: expected an integer, got {value!r}")
+            value = int(value)
+        typed[name] = value
+    try:
+        changed = envs.make(exp.env_name, **{**dict(exp.env_overrides), **typed})
+    except ValueError as e:  # the config's own checks
+        raise SystemExit(f"--eval-env: {e}") from None
+    differ = [f.name for f in dataclasses.fields(env.spec) if getattr(env.spec, f.name) != getattr(changed.spec, f.name)]
+    if differ:
+        raise SystemExit(f"--eval-env {dict(overrides)} changes the env's spec field(s) {differ}: the trained models "
+                         "need the observations and actions they were trained on; set such fields in the "
+                         "experiment's env_overrides and retrain")
+    return changed
 
 
 def task_metrics(exp: Experiment, tasks, env, per_episode: dict) -> dict:

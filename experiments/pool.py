@@ -60,6 +60,7 @@ class Run:
     path: Path
     metrics: dict  # the run's metrics.json
     env_overrides: str | None  # from config.json, when the run wrote one
+    eval_env: str | None  # the evaluation-only env fields (``RunConfig.eval_env``), when the run wrote them
     preset_settings: dict | None  # the Preset's fields, from config.json
 
     @property
@@ -91,7 +92,9 @@ def load_run(path: Path) -> Run:
     stored = json.loads(config.read_text()) if config.is_file() else {}
     overrides = stored.get("env_overrides")
     settings = stored.get("preset")
+    eval_env = stored.get("eval_env", {} if stored else None)  # written since the option exists; absent: none
     return Run(path, metrics, None if overrides is None else json.dumps(overrides, sort_keys=True),
+               None if eval_env is None else json.dumps(eval_env, sort_keys=True),
                settings if isinstance(settings, dict) else None)
 
 
@@ -106,10 +109,11 @@ def _require_same(runs: Sequence[Run], keys: Sequence[str], what: str, *, env: b
 
 
 def _require_same_env(runs: Sequence[Run], what: str) -> None:
-    overrides = {r.env_overrides for r in runs if r.env_overrides is not None}
-    if len(overrides) > 1:
-        raise ValueError(f"{what}: field 'env_overrides' in config.json differs between runs ({sorted(overrides)}); "
-                         "their tasks are not the same kind")
+    for field in ("env_overrides", "eval_env"):
+        values = {getattr(r, field) for r in runs if getattr(r, field) is not None}
+        if len(values) > 1:
+            raise ValueError(f"{what}: field '{field}' in config.json differs between runs ({sorted(values)}); "
+                             "they were not evaluated in the same env")
 
 
 def _require_same_preset(runs: Sequence[Run], what: str) -> None:

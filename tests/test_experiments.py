@@ -424,3 +424,44 @@ def test_ci_preset_runs_with_a_caps_ensemble(tmp_path):
     assert np.isfinite(out["metrics"]["caps"]["success_rate"]["mean"])
     assert (tmp_path / "data" / "checkpoints" / "caps_member1").is_dir()
     assert (tmp_path / "run" / "fpv.gif").stat().st_size > 0
+
+
+def test_eval_env_changes_the_evaluation_env_only_and_refuses_what_a_model_cannot_take(tmp_path):
+    exp = forest.EXPERIMENT
+    env = envs.make("forest", **dict(exp.env_overrides))
+    assert pipeline.evaluation_env(exp, env, {}) is env
+    farther = pipeline.evaluation_env(exp, env, {"lookahead": 4.0, "goal_path_points": 16.0})
+    assert farther.config.lookahead == 4.0 and farther.spec == env.spec
+    assert type(farther.config.goal_path_points) is int  # the CLI gives floats; int fields get ints
+    for bad, match in (({"lookahed": 4.0}, r"unknown config field 'lookahed'.*lookahead"),
+                       ({"camera": 1.0}, r"field 'camera': only number fields"),
+                       ({"goal_path_points": 2.5}, r"field 'goal_path_points': expected an integer"),
+                       ({"history": 8.0}, r"changes the env's spec field\(s\) \['history'\]"),
+                       ({"goal_path_points": 1.0}, r"--eval-env: goal_path_points must be >= 2")):
+        with pytest.raises(SystemExit, match=match):
+            pipeline.evaluation_env(exp, env, bad)
+    # From the command line; and a bad field stops the run before any folder is made.
+    cfg = pipeline.tyro.cli(pipeline.RunConfig, args=["--eval-env", "lookahead", "4"])
+    assert cfg.eval_env == {"lookahead": 4.0}
+    bad = pipeline.RunConfig(preset="ci", out=tmp_path / "run", data_dir=tmp_path / "data", eval_env={"history": 8})
+    with pytest.raises(SystemExit, match="history"):
+        pipeline.run(exp, forest.PRESETS, bad)
+    assert not (tmp_path / "data").exists() and not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_eval_env_run_reuses_the_dataset_and_model_and_evaluates_in_the_changed_env(tmp_path):
+    base = pipeline.RunConfig(preset="ci", out=tmp_path / "run", data_dir=tmp_path / "data", methods=("caps",),
+                              progress=False)
+    first = forest.main(base)
+    steps = sorted(p.name for p in (tmp_path / "data" / "checkpoints" / "caps").iterdir())
+    farther = forest.main(dataclasses.replace(base, out=tmp_path / "farther", eval_env={"lookahead": 4.0}))
+    assert farther["dataset"] == first["dataset"]  # the same dataset, not recollected
+    assert farther["timings_s"]["collect_s"] < first["timings_s"]["collect_s"]
+    assert sorted(p.name for p in (tmp_path / "data" / "checkpoints" / "caps").iterdir()) == steps  # nor retrained
+    assert farther["holdout_loss"] == first["holdout_loss"]
+    assert json.loads((tmp_path / "farther" / "config.json").read_text())["eval_env"] == {"lookahead": 4.0}
+    assert farther["eval_env"] == {"lookahead": 4.0} and first["eval_env"] == {}
+    with np.load(tmp_path / "farther" / "eval" / "caps.npz") as f:
+        assert json.loads(str(f["key"]))["env"]["lookahead"] == 4.0
+    assert "lookahead = 4" in (tmp_path / "farther" / "table.md").read_text()

@@ -8,7 +8,7 @@ from experiments import pool
 
 
 def write_run(folder, *, seed, success, distance, preset="small", split="val", experiment="forest",
-              baseline_success=None, env_overrides=None, settings=None, starts=None, train_seed=0):
+              baseline_success=None, env_overrides=None, settings=None, starts=None, train_seed=0, eval_env=None):
     folder.mkdir(parents=True)
     if starts is not None:  # the stored evaluation's poses: [E, T, 3], each episode from its start
         (folder / "eval").mkdir()
@@ -23,7 +23,10 @@ def write_run(folder, *, seed, success, distance, preset="small", split="val", e
                "paper": {"caps": {"success_rate": 0.75}}, "per_episode": per_episode}
     (folder / "metrics.json").write_text(json.dumps(metrics))
     if env_overrides is not None or settings is not None:
-        (folder / "config.json").write_text(json.dumps({"env_overrides": env_overrides or {}, "preset": settings}))
+        config = {"env_overrides": env_overrides or {}, "preset": settings}
+        if eval_env is not None:  # runs stored before the option existed have no field
+            config["eval_env"] = eval_env
+        (folder / "config.json").write_text(json.dumps(config))
     return folder
 
 
@@ -65,12 +68,19 @@ def test_paired_difference_is_per_task(tmp_path):
     (dict(preset="large"), "field 'preset' differs"),
     (dict(seed=0), "field 'seed' repeats"),
     (dict(env_overrides={"arena_half": 20.0}), "field 'env_overrides'"),
+    (dict(eval_env={"lookahead": 4.0}), "field 'eval_env'"),
 ])
 def test_pool_refuses_runs_of_different_settings(tmp_path, change, message):
     a = write_run(tmp_path / "a", seed=0, success=[1], distance=[1.0], env_overrides={})
     b = write_run(tmp_path / "b", **{**dict(seed=1, success=[0], distance=[1.0], env_overrides={}), **change})
     with pytest.raises(ValueError, match=message):
         pool.pool([pool.load_run(a), pool.load_run(b)])
+
+
+def test_runs_stored_before_eval_env_pool_with_runs_evaluated_in_the_same_env(tmp_path):
+    older = write_run(tmp_path / "a", seed=0, success=[1], distance=[1.0], env_overrides={})
+    newer = write_run(tmp_path / "b", seed=1, success=[0], distance=[1.0], env_overrides={}, eval_env={})
+    assert pool.pool([pool.load_run(older), pool.load_run(newer)])["seeds"] == [0, 1]
 
 
 def test_pool_compares_preset_settings_not_names(tmp_path):
