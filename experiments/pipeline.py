@@ -212,7 +212,7 @@ class RunConfig:
     """Env config fields changed for the evaluation only, as name-value pairs (``--eval-env lookahead 4``: the
     forest's pursuit point 4 m ahead).  Collection, labelling and training keep the experiment's env, so the
     stored dataset and models are reused; the fields must leave the env's spec (observations, actions) as it
-    is.  Evaluations are cached per env config, so give such a run its own ``--out``."""
+    is, but for the planner's sampling box.  Evaluations are cached per env config, so give such a run its own ``--out``."""
     progress: bool = True
     """Progress bars for every long stage."""
     smoke: bool = False
@@ -607,7 +607,8 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
 def evaluation_env(exp: Experiment, env, overrides: Mapping[str, float]):
     """The env the methods are evaluated in: the experiment's env with the number fields ``overrides``
     (``RunConfig.eval_env``) replaced.  A trained model needs the observations and actions it was trained on,
-    so a change to the env's spec is refused (change ``Experiment.env_overrides`` and retrain instead)."""
+    so a change to the env's spec is refused (change ``Experiment.env_overrides`` and retrain instead), except
+    to the planner's sampling box (``plan_steer_deg``, a narrower box than the one the data was collected in)."""
     if not overrides:
         return env
     current = {f.name: getattr(env.config, f.name) for f in dataclasses.fields(env.config)}
@@ -628,7 +629,9 @@ def evaluation_env(exp: Experiment, env, overrides: Mapping[str, float]):
         changed = envs.make(exp.env_name, **{**dict(exp.env_overrides), **typed})
     except ValueError as e:  # the config's own checks
         raise SystemExit(f"--eval-env: {e}") from None
-    differ = [f.name for f in dataclasses.fields(env.spec) if getattr(env.spec, f.name) != getattr(changed.spec, f.name)]
+    # The plan box is the planner's sampling range (models scale actions by the env's action box): it may change.
+    differ = [f.name for f in dataclasses.fields(env.spec) if f.name not in ("plan_low", "plan_high")
+              and getattr(env.spec, f.name) != getattr(changed.spec, f.name)]
     if differ:
         raise SystemExit(f"--eval-env {dict(overrides)} changes the env's spec field(s) {differ}: the trained models "
                          "need the observations and actions they were trained on; set such fields in the "

@@ -433,6 +433,9 @@ def test_eval_env_changes_the_evaluation_env_only_and_refuses_what_a_model_canno
     farther = pipeline.evaluation_env(exp, env, {"lookahead": 4.0, "goal_path_points": 16.0})
     assert farther.config.lookahead == 4.0 and farther.spec == env.spec
     assert type(farther.config.goal_path_points) is int  # the CLI gives floats; int fields get ints
+    narrower = pipeline.evaluation_env(exp, env, {"plan_steer_deg": 20.0})  # the planner's box may change
+    assert narrower.spec.plan_high[0] == 20.0 and narrower.spec.action_high == env.spec.action_high
+    assert pipeline.cem_config(forest.PRESETS["ci"], narrower, 12).action_high[0] == 20.0
     for bad, match in (({"lookahed": 4.0}, r"unknown config field 'lookahed'.*lookahead"),
                        ({"camera": 1.0}, r"field 'camera': only number fields"),
                        ({"goal_path_points": 2.5}, r"field 'goal_path_points': expected an integer"),
