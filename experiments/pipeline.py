@@ -212,7 +212,8 @@ class RunConfig:
     """Env config fields changed for the evaluation only, as name-value pairs (``--eval-env lookahead 4``: the
     forest's pursuit point 4 m ahead).  Collection, labelling and training keep the experiment's env, so the
     stored dataset and models are reused; the fields must leave the env's spec (observations, actions) as it
-    is, but for the planner's sampling box.  Evaluations are cached per env config, so give such a run its own ``--out``."""
+    is, but for the planner's sampling box.  Evaluations are cached per env config: give such a run its own
+    ``--out``."""
     progress: bool = True
     """Progress bars for every long stage."""
     smoke: bool = False
@@ -579,7 +580,8 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     verdict = compare(exp, metrics)
     out = {
         "experiment": exp.name, "preset": cfg.preset, "seed": cfg.seed, "split": cfg.split, "train_seed": cfg.train_seed,
-        "eval_env": dict(cfg.eval_env), "metrics": metrics, "paper": exp.paper, "comparison": verdict, "labeller": labeller_quality,
+        "eval_env": dict(cfg.eval_env), "metrics": metrics, "paper": exp.paper, "comparison": verdict,
+        "labeller": labeller_quality,
         "holdout_loss": holdout_loss, "dataset": {"episodes": ds.num_episodes, "steps": ds.num_steps,
                                                   "train_episodes": len(train_ids), "holdout_episodes": len(holdout_ids)},
         "timings_s": timings, "device": jax.devices()[0].device_kind,
