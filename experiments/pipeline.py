@@ -201,7 +201,7 @@ class RunConfig:
     stream, disjoint from training and from 'eval': for choosing rewards and planner settings)."""
     out: Path | None = None
     """Output folder of this run (default ``results/<experiment>/<preset>_seed<seed>``, with ``_val`` before
-    ``_seed`` for the 'val' split)."""
+    ``_seed`` for the 'val' split and ``--eval-env``'s fields after it, e.g. ``_lookahead4``)."""
     data_dir: Path | None = None
     """Dataset and trained models, shared by every evaluation seed (default ``datasets/<experiment>/<preset>``)."""
     train_seed: int = 0
@@ -212,8 +212,7 @@ class RunConfig:
     """Env config fields changed for the evaluation only, as name-value pairs (``--eval-env lookahead 4``: the
     forest's pursuit point 4 m ahead).  Collection, labelling and training keep the experiment's env, so the
     stored dataset and models are reused; the fields must leave the env's spec (observations, actions) as it
-    is, but for the planner's sampling box.  Evaluations are cached per env config: give such a run its own
-    ``--out``."""
+    is, but for the planner's sampling box.  The default ``--out`` gets the fields' names and values appended."""
     progress: bool = True
     """Progress bars for every long stage."""
     smoke: bool = False
@@ -233,7 +232,9 @@ def cli(main: Callable[[RunConfig], dict], description: str) -> dict:
 def resolve_paths(exp: Experiment, cfg: RunConfig) -> tuple[Path, Path]:
     split = "" if cfg.split == "eval" else f"_{cfg.split}"
     name = f"{cfg.preset}_smoke" if cfg.smoke else cfg.preset  # a smoke run never touches the real run's data
-    run_dir = cfg.out if cfg.out is not None else Path("results") / exp.name / f"{name}{split}_seed{cfg.seed}"
+    # An evaluation in a changed env gets its own default folder: it never replaces the unchanged env's results.
+    changed = "".join(f"_{k}{v:g}" for k, v in sorted(cfg.eval_env.items()))
+    run_dir = cfg.out if cfg.out is not None else Path("results") / exp.name / f"{name}{split}_seed{cfg.seed}{changed}"
     data_dir = cfg.data_dir if cfg.data_dir is not None else Path("datasets") / exp.name / f"{name}_train{cfg.train_seed}"
     run_dir.mkdir(parents=True, exist_ok=True)
     data_dir.mkdir(parents=True, exist_ok=True)

@@ -426,7 +426,7 @@ def test_ci_preset_runs_with_a_caps_ensemble(tmp_path):
     assert (tmp_path / "run" / "fpv.gif").stat().st_size > 0
 
 
-def test_eval_env_changes_the_evaluation_env_only_and_refuses_what_a_model_cannot_take(tmp_path):
+def test_eval_env_changes_the_evaluation_env_only_and_refuses_what_a_model_cannot_take(tmp_path, monkeypatch):
     exp = forest.EXPERIMENT
     env = envs.make("forest", **dict(exp.env_overrides))
     assert pipeline.evaluation_env(exp, env, {}) is env
@@ -450,6 +450,9 @@ def test_eval_env_changes_the_evaluation_env_only_and_refuses_what_a_model_canno
     with pytest.raises(SystemExit, match="history"):
         pipeline.run(exp, forest.PRESETS, bad)
     assert not (tmp_path / "data").exists() and not (tmp_path / "run").exists()
+    monkeypatch.chdir(tmp_path)  # resolve_paths creates the folders
+    run_dir, _ = pipeline.resolve_paths(exp, pipeline.RunConfig(split="val", eval_env={"lookahead": 4.0}))
+    assert run_dir.as_posix() == "results/forest/small_val_seed0_lookahead4"  # never the unchanged env's folder
 
 
 @pytest.mark.slow
