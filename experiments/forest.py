@@ -2,7 +2,8 @@
 
 Data: uniform random driving in forest layouts whose tasks are *circular* paths (the training task
 stream).  Every method trains on this one stored dataset (the strict off-policy test, Q2).  Evaluation:
-follow *sinusoidal* paths in layouts from the disjoint evaluation stream.  Every preset trains on half
+follow *sinusoidal* paths in layouts from the disjoint evaluation stream, the goal heading pointing at the
+path 6 m ahead (``EXPERIMENT.eval_env``).  Every preset trains on half
 of its windows mirrored left-right (``Preset.mirror``: the forest has no handedness, so a mirrored window
 is as real as the original; it lowered the held-out collision loss by a quarter).  Metrics (the paper's table):
 ``success_rate`` (finished the path without a collision) and ``path_distance_mean`` (mean distance
@@ -84,6 +85,8 @@ PRESETS = {
     # (env ``lookahead``, evaluation only): 83 of 128 each against 79, +3 points [-5, +12].
     # The 4 m pursuit point on three training seeds (2026-12-06, 384 paired paths): +5.7 points [-0.3, +11.7].
     # On four more training seeds, a host without AVX-512 (512 paired paths): +5.1 points [-0.2, +11.1]; kept at 2 m.
+    # 6 m on those four models (2026-12-07, the same rule fixed before the run): +7.6 points [+1.4, +14.3] over 512
+    # paired 'val' paths, nearer the path (-0.29 m): adopted, as ``EXPERIMENT.eval_env`` (evaluation only).
     "small": SMALL,
     # Four times `small`'s data and CAPs steps (three data steps per CAPs step, as in `small`): far over the
     # 30-minute budget (CAPs alone ~50 minutes on the 2-core CPU, ~2 hours with the baselines), hence a preset
@@ -109,6 +112,9 @@ EXPERIMENT = pipeline.Experiment(
     name="forest",
     env_name="forest",
     env_overrides={},
+    # The goal heading points at the path 6 m ahead of the car, not 2 m (chosen on 'val', see PRESETS): a gentler
+    # return to the path from beside it.  Random collection never reads it, so only evaluation changes.
+    eval_env={"lookahead": 6.0},
     cues=(cues.COLLISION, cues.HEADING, cues.SPEED),
     learned_cues=(),
     baseline_config=baselines.BaselineConfig.forest,

@@ -184,6 +184,10 @@ class Experiment:
     # forest's success on the paths the car can drive).  Applied after the evaluation cache, so stored
     # evaluations gain them without being re-run.
     task_metrics: Callable | None = None
+    # Env config fields that differ in evaluation from collection and training (the forest's pursuit point):
+    # evaluation-only settings, so datasets and models stay shared with the unchanged env.  ``RunConfig.eval_env``
+    # goes on top of them.
+    eval_env: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,8 +213,8 @@ class RunConfig:
     methods: tuple[str, ...] = ()
     """Evaluate only these methods (default: all of the experiment's)."""
     eval_env: dict[str, float] = dataclasses.field(default_factory=dict)
-    """Env config fields changed for the evaluation only, as name-value pairs (``--eval-env lookahead 4``: the
-    forest's pursuit point 4 m ahead).  Collection, labelling and training keep the experiment's env, so the
+    """Env config fields changed for the evaluation only, as name-value pairs, on top of the experiment's own
+    (``--eval-env lookahead 4``: the forest's pursuit point 4 m ahead).  Collection, labelling and training keep the experiment's env, so the
     stored dataset and models are reused; the fields must leave the env's spec (observations, actions) as it
     is, but for the planner's sampling box.  The default ``--out`` gets the fields' names and values appended."""
     progress: bool = True
@@ -483,12 +487,13 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
         raise SystemExit("Preset.ensemble > 1 with Preset.onpolicy_steps > 0 is not supported: the on-policy "
                          "stage continues one CAPs model; use ensemble=1 or onpolicy_steps=0")
     env = envs.make(exp.env_name, **dict(exp.env_overrides))
-    eval_env = evaluation_env(exp, env, cfg.eval_env)  # checked before any folder is made
+    eval_overrides = {**dict(exp.eval_env), **cfg.eval_env}
+    eval_env = evaluation_env(exp, env, eval_overrides)  # checked before any folder is made
     run_dir, data_dir = resolve_paths(exp, cfg)
     timings: dict[str, float] = {}
     report.write_json(run_dir / "config.json", {
         "experiment": exp.name, "run": dataclasses.asdict(cfg), "preset": dataclasses.asdict(preset),
-        "env": exp.env_name, "env_overrides": dict(exp.env_overrides), "eval_env": dict(cfg.eval_env),
+        "env": exp.env_name, "env_overrides": dict(exp.env_overrides), "eval_env": eval_overrides,
         "cues": [c.name for c in exp.cues],
         "methods": [dataclasses.asdict(m) for m in exp.methods], "device": jax.devices()[0].device_kind,
         "data_dir": str(data_dir)})
@@ -581,7 +586,7 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     verdict = compare(exp, metrics)
     out = {
         "experiment": exp.name, "preset": cfg.preset, "seed": cfg.seed, "split": cfg.split, "train_seed": cfg.train_seed,
-        "eval_env": dict(cfg.eval_env), "metrics": metrics, "paper": exp.paper, "comparison": verdict,
+        "eval_env": eval_overrides, "metrics": metrics, "paper": exp.paper, "comparison": verdict,
         "labeller": labeller_quality,
         "holdout_loss": holdout_loss, "dataset": {"episodes": ds.num_episodes, "steps": ds.num_steps,
                                                   "train_episodes": len(train_ids), "holdout_episodes": len(holdout_ids)},
@@ -592,9 +597,9 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
     notes = list(exp.notes) + [f"Preset `{cfg.preset}`, {cfg.split} seed {cfg.seed}, {preset.eval_episodes} {cfg.split} episodes of "
                                f"at most {preset.eval_steps} steps; cells: mean [95 % bootstrap CI over episodes]."]
     notes += [f"{m.name}: {m.description}" for m in methods if m.description]
-    if cfg.eval_env:
+    if eval_overrides:
         notes.append("Evaluated with env fields changed from training's: "
-                     + ", ".join(f"{k} = {v:g}" for k, v in sorted(cfg.eval_env.items())) + ".")
+                     + ", ".join(f"{k} = {v:g}" for k, v in sorted(eval_overrides.items())) + ".")
     (run_dir / "table.md").write_text(report.table(metrics, exp.columns, exp.paper, title=f"{exp.name} ({cfg.preset})",
                                                    notes=notes))
     t = time.time()
@@ -609,9 +614,10 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
 
 def evaluation_env(exp: Experiment, env, overrides: Mapping[str, float]):
     """The env the methods are evaluated in: the experiment's env with the number fields ``overrides``
-    (``RunConfig.eval_env``) replaced.  A trained model needs the observations and actions it was trained on,
-    so a change to the env's spec is refused (change ``Experiment.env_overrides`` and retrain instead), except
-    to the planner's sampling box (``plan_steer_deg``, a narrower box than the one the data was collected in)."""
+    (``Experiment.eval_env`` with ``RunConfig.eval_env`` on top) replaced.  A trained model needs the
+    observations and actions it was trained on, so a change to the env's spec is refused (change
+    ``Experiment.env_overrides`` and retrain instead), except to the planner's sampling box (``plan_steer_deg``,
+    a narrower box than the one the data was collected in)."""
     if not overrides:
         return env
     current = {f.name: getattr(env.config, f.name) for f in dataclasses.fields(env.config)}

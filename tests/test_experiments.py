@@ -430,6 +430,10 @@ def test_eval_env_changes_the_evaluation_env_only_and_refuses_what_a_model_canno
     exp = forest.EXPERIMENT
     env = envs.make("forest", **dict(exp.env_overrides))
     assert pipeline.evaluation_env(exp, env, {}) is env
+    for module in (forest, city, indoor):  # every experiment's own evaluation-only fields are valid ones
+        own = module.EXPERIMENT
+        base_env = envs.make(own.env_name, **dict(own.env_overrides))
+        assert pipeline.evaluation_env(own, base_env, own.eval_env).spec == base_env.spec
     farther = pipeline.evaluation_env(exp, env, {"lookahead": 4.0, "goal_path_points": 16.0})
     assert farther.config.lookahead == 4.0 and farther.spec == env.spec
     assert type(farther.config.goal_path_points) is int  # the CLI gives floats; int fields get ints
@@ -462,12 +466,15 @@ def test_eval_env_run_reuses_the_dataset_and_model_and_evaluates_in_the_changed_
     first = forest.main(base)
     steps = sorted(p.name for p in (tmp_path / "data" / "checkpoints" / "caps").iterdir())
     farther = forest.main(dataclasses.replace(base, out=tmp_path / "farther", eval_env={"lookahead": 4.0}))
+    with np.load(tmp_path / "run" / "eval" / "caps.npz") as f:
+        assert json.loads(str(f["key"]))["env"]["lookahead"] == forest.EXPERIMENT.eval_env["lookahead"]
     assert farther["dataset"] == first["dataset"]  # the same dataset, not recollected
     assert farther["timings_s"]["collect_s"] < first["timings_s"]["collect_s"]
     assert sorted(p.name for p in (tmp_path / "data" / "checkpoints" / "caps").iterdir()) == steps  # nor retrained
     assert farther["holdout_loss"] == first["holdout_loss"]
     assert json.loads((tmp_path / "farther" / "config.json").read_text())["eval_env"] == {"lookahead": 4.0}
-    assert farther["eval_env"] == {"lookahead": 4.0} and first["eval_env"] == {}
+    # The run's fields go on top of the experiment's own (the forest's 6 m pursuit point).
+    assert farther["eval_env"] == {"lookahead": 4.0} and first["eval_env"] == dict(forest.EXPERIMENT.eval_env)
     with np.load(tmp_path / "farther" / "eval" / "caps.npz") as f:
         assert json.loads(str(f["key"]))["env"]["lookahead"] == 4.0
     assert "lookahead = 4" in (tmp_path / "farther" / "table.md").read_text()
