@@ -60,7 +60,7 @@ class Run:
     path: Path
     metrics: dict  # the run's metrics.json
     env_overrides: str | None  # from config.json, when the run wrote one
-    eval_env: str | None  # the evaluation-only env fields (``RunConfig.eval_env``), when the run wrote them
+    eval_env: str | None  # the run's evaluation-only env fields (config.json's 'eval_env'), when it wrote them
     preset_settings: dict | None  # the Preset's fields, from config.json
 
     @property
