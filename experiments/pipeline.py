@@ -215,8 +215,9 @@ class RunConfig:
     eval_env: dict[str, float] = dataclasses.field(default_factory=dict)
     """Env config fields changed for the evaluation only, as name-value pairs, on top of the experiment's own
     (``--eval-env lookahead 4``: the forest's pursuit point 4 m ahead).  Collection, labelling and training keep
-    the experiment's env, so the stored dataset and models are reused; the fields must leave the env's spec (observations, actions) as it
-    is, but for the planner's sampling box.  The default ``--out`` gets the fields' names and values appended."""
+    the experiment's env, so the stored dataset and models are reused; the fields must leave the env's spec
+    (observations, actions) as it is, but for the planner's sampling box.  The default ``--out`` gets the fields'
+    names and values appended."""
     progress: bool = True
     """Progress bars for every long stage."""
     smoke: bool = False
