@@ -95,7 +95,7 @@ PRESETS = {
     # `small` 55 %; this data at 40k CAPs steps 58 % (62.5, 53); at 80k steps 75 % (84, 66).
     # With the 6 m pursuit point of ``EXPERIMENT.eval_env`` (2026-12-07, a host without AVX-512, one training run,
     # measured after 6 m was adopted, so nothing chosen here): 'val' 88 % (2 m on the same model 67 %), then
-    # 'eval' 81 % (52 of 64; 2 m 44 %).
+    # 'eval' 81 % (52 of 64; 2 m 44 %).  A second training run: 'eval' 53 % (34 of 64); 67 % over both.
     "medium": MEDIUM,
     # `medium`'s data (the same dataset: same collection settings and seed) with twice its CAPs steps; the
     # baselines keep `medium`'s 40k.  The learning rate is constant and the batch keys live in the train
