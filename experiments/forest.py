@@ -3,7 +3,7 @@
 Data: uniform random driving in forest layouts whose tasks are *circular* paths (the training task
 stream).  Every method trains on this one stored dataset (the strict off-policy test, Q2).  Evaluation:
 follow *sinusoidal* paths in layouts from the disjoint evaluation stream, the goal heading pointing at the
-path 6 m ahead (``EXPERIMENT.eval_env``).  Every preset trains on half
+path 8 m ahead (``EXPERIMENT.eval_env``).  Every preset trains on half
 of its windows mirrored left-right (``Preset.mirror``: the forest has no handedness, so a mirrored window
 is as real as the original; it lowered the held-out collision loss by a quarter).  Metrics (the paper's table):
 ``success_rate`` (finished the path without a collision) and ``path_distance_mean`` (mean distance
@@ -87,6 +87,8 @@ PRESETS = {
     # On four more training seeds, a host without AVX-512 (512 paired paths): +5.1 points [-0.2, +11.1]; kept at 2 m.
     # 6 m on those four models (2026-12-07, the same rule fixed before the run): +7.6 points [+1.4, +14.3] over 512
     # paired 'val' paths, nearer the path (-0.29 m): adopted, as ``EXPERIMENT.eval_env`` (evaluation only).
+    # 8 m against 6 m on the two `medium` models (2026-12-07, the same rule fixed before the run, 128 paired 'val'
+    # paths): +8 points [+1, +16], as near the path (+0.01 m): adopted.  Not measured on `small`'s 'val'.
     "small": SMALL,
     # Four times `small`'s data and CAPs steps (three data steps per CAPs step, as in `small`): far over the
     # 30-minute budget (CAPs alone ~50 minutes on the 2-core CPU, ~2 hours with the baselines), hence a preset
@@ -96,6 +98,8 @@ PRESETS = {
     # With the 6 m pursuit point of ``EXPERIMENT.eval_env`` (2026-12-07, a host without AVX-512, one training run,
     # measured after 6 m was adopted, so nothing chosen here): 'val' 88 % (2 m on the same model 67 %), then
     # 'eval' 81 % (52 of 64; 2 m 44 %).  A second training run: 'eval' 53 % (34 of 64); 67 % over both.
+    # Most of that run's failures were side hits: obstacles 70-110 degrees off the heading, outside the camera's
+    # 120 degrees, struck while turning back to the path after passing them (README).  Hence the 8 m point above.
     "medium": MEDIUM,
     # `medium`'s data (the same dataset: same collection settings and seed) with twice its CAPs steps; the
     # baselines keep `medium`'s 40k.  The learning rate is constant and the batch keys live in the train
@@ -115,9 +119,10 @@ EXPERIMENT = pipeline.Experiment(
     name="forest",
     env_name="forest",
     env_overrides={},
-    # The goal heading points at the path 6 m ahead of the car, not 2 m (chosen on 'val', see PRESETS): a gentler
-    # return to the path from beside it.  Random collection never reads it, so only evaluation changes.
-    eval_env={"lookahead": 6.0},
+    # The goal heading points at the path 8 m ahead of the car, not 2 m (chosen on 'val' in steps 2 -> 6 -> 8 m, see
+    # PRESETS): a gentler return to the path after going round an obstacle, which the car has passed out of its
+    # camera's view.  Random collection never reads it, so only evaluation changes.
+    eval_env={"lookahead": 8.0},
     cues=(cues.COLLISION, cues.HEADING, cues.SPEED),
     learned_cues=(),
     baseline_config=baselines.BaselineConfig.forest,

@@ -473,7 +473,7 @@ def test_eval_env_run_reuses_the_dataset_and_model_and_evaluates_in_the_changed_
     assert sorted(p.name for p in (tmp_path / "data" / "checkpoints" / "caps").iterdir()) == steps  # nor retrained
     assert farther["holdout_loss"] == first["holdout_loss"]
     assert json.loads((tmp_path / "farther" / "config.json").read_text())["eval_env"] == {"lookahead": 4.0}
-    # The run's fields go on top of the experiment's own (the forest's 6 m pursuit point).
+    # The run's fields go on top of the experiment's own (the forest's 8 m pursuit point).
     assert farther["eval_env"] == {"lookahead": 4.0} and first["eval_env"] == dict(forest.EXPERIMENT.eval_env)
     with np.load(tmp_path / "farther" / "eval" / "caps.npz") as f:
         assert json.loads(str(f["key"]))["env"]["lookahead"] == 4.0
