@@ -98,7 +98,7 @@ PRESETS = {
     # With the 6 m pursuit point of ``EXPERIMENT.eval_env`` (2026-12-07, a host without AVX-512, one training run,
     # measured after 6 m was adopted, so nothing chosen here): 'val' 88 % (2 m on the same model 67 %), then
     # 'eval' 81 % (52 of 64; 2 m 44 %).  A second training run: 'eval' 53 % (34 of 64); 67 % over both.
-    # Most of that run's failures were side hits: obstacles 70-110 degrees off the heading, outside the camera's
+    # Most of that run's failures were side hits: obstacles 76-107 degrees off the heading, outside the camera's
     # 120 degrees, struck while turning back to the path after passing them (README).  Hence the 8 m point above.
     "medium": MEDIUM,
     # `medium`'s data (the same dataset: same collection settings and seed) with twice its CAPs steps; the
