@@ -261,6 +261,15 @@ def repeat_steps(body: Callable, num_steps: int, **jit_kwargs) -> Callable:
     return run
 
 
+def progress_bar(progress: bool | str, total: int, initial: int):
+    """A tqdm bar of training steps (labelled when ``progress`` is a string), or None when it is falsy."""
+    if not progress:
+        return None
+    import tqdm
+
+    return tqdm.tqdm(total=total, initial=initial, unit="step", desc=progress if isinstance(progress, str) else None)
+
+
 def fit(
     model,
     cfg: TrainConfig,
@@ -274,7 +283,7 @@ def fit(
     keep: int = 3,
     max_bad_steps: int = 10,
     mesh=None,
-    progress: bool = False,
+    progress: bool | str = False,
     metadata: dict | None = None,
 ):
     """Train to ``num_steps`` total steps, resumably: ``(state, metrics)`` with the last chunk's metrics.
@@ -287,6 +296,9 @@ def fit(
     e.g. how the training windows were drawn) are saved beside each checkpoint and a checkpoint of
     another config is refused; a dataclass section of ``metadata`` missing from an older checkpoint counts
     as its defaults (``checkpoint.training_defaults``).
+
+    ``progress``: a tqdm bar of the steps (a string labels it, so that models trained at once in threads tell
+    their bars apart).
 
     Raises ``NonFiniteTrainingError`` once ``max_bad_steps`` steps in a row had a non-finite loss or
     gradient; the state of that chunk is not saved, so the last good checkpoint stays the latest.
@@ -310,11 +322,7 @@ def fit(
         if restored is not None:
             log.info("resumed from step %d in %s", restored, ckpt_dir)
     metrics = {}
-    bar = None
-    if progress:
-        import tqdm
-
-        bar = tqdm.tqdm(total=num_steps, initial=int(state.step), unit="step")
+    bar = progress_bar(progress, num_steps, int(state.step))
     trains = {}  # one per chunk length (at most three): with a mesh, the buffers are replicated once each
     try:
         while int(state.step) < num_steps:

@@ -15,6 +15,7 @@ paths, goals), evaluation tasks from its disjoint 'eval' stream seeded by ``--se
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import functools
@@ -221,6 +222,9 @@ class RunConfig:
     names and values appended."""
     progress: bool = True
     """Progress bars for every long stage."""
+    train_jobs: int = 0
+    """Models trained at once, in threads (0: CAPs and every baseline together; 1: one after another).  The
+    trained models are the same either way; at once is faster where one training leaves cores idle (a CPU)."""
     smoke: bool = False
     """Smoke test of the preset: its model, horizon, planner and training settings at the 'ci' preset's data
     sizes and step counts, so every stage runs in minutes (check ``--preset paper`` before a long GPU run).
@@ -400,7 +404,7 @@ def train_caps(exp: Experiment, preset: Preset, model, sampler, data_dir: Path, 
         state, metrics = training.fit(
             model, train_cfg, sampler.batches(preset.batch_size), num_steps or preset.train_steps,
             key=key, state=state, ckpt_dir=str(ckpt_dir.absolute()),
-            save_every=preset.save_every, progress=cfg.progress, metadata=training_metadata(preset))
+            save_every=preset.save_every, progress=cfg.progress and name, metadata=training_metadata(preset))
     log(exp, f"{name}: {int(state.step)} steps ({time.time() - t:.0f} s)")
     return state
 
@@ -414,9 +418,38 @@ def train_baseline(exp: Experiment, preset: Preset, kind: str, model_cfg, env, s
         state, _ = baselines.fit_offline(
             agent, train_cfg, sampler.batches(preset.batch_size), preset.baseline_steps,
             key=jax.random.key(cfg.train_seed + 2), ckpt_dir=str(ckpt_dir.absolute()),
-            save_every=preset.save_every, metadata=training_metadata(preset))
+            save_every=preset.save_every, metadata=training_metadata(preset), progress=cfg.progress and kind)
     log(exp, f"{kind}: {int(state.step)} steps ({time.time() - t:.0f} s)")
     return agent, state.params
+
+
+def run_concurrently(jobs: Mapping[str, Callable[[], object]], workers: int, timings: dict) -> dict:
+    """``{name: job()}``, the jobs run in up to ``workers`` threads at once (0: all of them), each one's wall
+    time in ``timings['train_<name>_s']`` and the whole stage's in ``timings['train_s']``.
+
+    Why threads: XLA:CPU runs a convolution on one core (measured on the forest's CNN: as fast on one core
+    as on two), so a second model trains in the time the first leaves idle; JAX releases the GIL while a
+    compiled step runs.  Each model's steps are the same computations in the same order, so the results
+    are bit for bit those of one model after another (tests/test_experiments.py).  Every job runs to its end
+    even when another fails (each has saved its checkpoints, so a rerun resumes them); then the first
+    failure is raised."""
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 0:
+        raise ValueError(f"train_jobs must be an int >= 0 (0: every model at once), got {workers!r}")
+    if not jobs:
+        return {}
+
+    def timed(name, job):
+        t = time.time()
+        result = job()
+        timings[f"train_{name}_s"] = time.time() - t
+        return result
+
+    t = time.time()
+    with concurrent.futures.ThreadPoolExecutor(max_workers=workers or len(jobs)) as pool:
+        futures = {name: pool.submit(timed, name, job) for name, job in jobs.items()}
+        concurrent.futures.wait(futures.values())
+    timings["train_s"] = timings.get("train_s", 0.0) + time.time() - t
+    return {name: future.result() for name, future in futures.items()}  # raises the first failure
 
 
 def goals_from_env(state, spec: RewardSpec) -> RewardSpec:
@@ -520,17 +553,27 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
                                 signals=tuple(s for s in needed if s not in label_sources), mirror=preset.mirror,
                                 history=env.spec.history)
     methods = [m for m in exp.methods if not cfg.methods or m.name in cfg.methods]
+    caps_needed = any(m.kind == "caps" for m in methods) or preset.onpolicy_steps
+    baseline_kinds = sorted({m.kind for m in methods} - {"caps"})
+    # Every model that trains on the same data trains at once (``run_concurrently``): XLA:CPU runs a
+    # convolution on one core, so on a 2-core CPU one model's training leaves a core mostly idle.
+    jobs = {}
+    if caps_needed:
+        jobs["caps"] = functools.partial(train_caps, exp, preset, model, sampler, data_dir, cfg)
+        for i in range(1, preset.ensemble):
+            jobs[f"caps_member{i}"] = functools.partial(train_caps, exp, preset, model, sampler, data_dir, cfg,
+                                                        name=f"caps_member{i}", member=i)
+    if not preset.onpolicy_steps:  # otherwise the baselines wait for the on-policy data (below)
+        jobs.update({kind: functools.partial(train_baseline, exp, preset, kind, model.config, env, sampler, data_dir,
+                                             cfg) for kind in baseline_kinds})
+    trained = run_concurrently(jobs, cfg.train_jobs, timings)
     params = {}
-    t = time.time()
-    if any(m.kind == "caps" for m in methods) or preset.onpolicy_steps:
-        caps_state = train_caps(exp, preset, model, sampler, data_dir, cfg)
+    if caps_needed:
+        caps_state = trained["caps"]
         params["caps"] = caps_state.params
         if preset.ensemble > 1:
-            members = [params["caps"]] + [
-                train_caps(exp, preset, model, sampler, data_dir, cfg, name=f"caps_member{i}", member=i).params
-                for i in range(1, preset.ensemble)]
-            params["caps"] = caps_model.stack(members)
-    timings["train_caps_s"] = time.time() - t
+            params["caps"] = caps_model.stack([params["caps"]] + [trained[f"caps_member{i}"].params
+                                                                  for i in range(1, preset.ensemble)])
     if preset.onpolicy_steps:
         t = time.time()
         ds_on = onpolicy_stage(exp, preset, env, model, params["caps"], data_dir, cfg)
@@ -543,16 +586,16 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
             signals=tuple(s for s in needed if s not in label_sources), mirror=preset.mirror,
             history=env.spec.history))
         timings["collect_onpolicy_s"] = time.time() - t
-        t = time.time()
-        caps_state = train_caps(exp, preset, model, sampler, data_dir, cfg, name="caps_onpolicy", state=caps_state,
-                                num_steps=preset.train_steps + preset.onpolicy_train_steps)
-        params["caps"] = caps_state.params
-        timings["train_caps_onpolicy_s"] = time.time() - t
+        jobs = {"caps_onpolicy": functools.partial(
+            train_caps, exp, preset, model, sampler, data_dir, cfg, name="caps_onpolicy", state=caps_state,
+            num_steps=preset.train_steps + preset.onpolicy_train_steps)}
+        jobs.update({kind: functools.partial(train_baseline, exp, preset, kind, model.config, env, sampler, data_dir,
+                                             cfg) for kind in baseline_kinds})
+        trained.update(run_concurrently(jobs, cfg.train_jobs, timings))
+        params["caps"] = trained["caps_onpolicy"].params
     agents = {}
-    for kind in sorted({m.kind for m in methods} - {"caps"}):
-        t = time.time()
-        agents[kind], params[kind] = train_baseline(exp, preset, kind, model.config, env, sampler, data_dir, cfg)
-        timings[f"train_{kind}_s"] = time.time() - t
+    for kind in baseline_kinds:
+        agents[kind], params[kind] = trained[kind]
 
     holdout_loss = holdout_losses(caps_model, params.get("caps"), ds, holdout_ids, preset, label_sources, needed)
 

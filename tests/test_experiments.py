@@ -368,6 +368,50 @@ def test_checkpoints_trained_on_other_windows_are_refused_not_resumed(tmp_path):
     assert sorted(p.name for p in (tmp_path / "checkpoints" / "caps").iterdir() if p.name.isdigit()) == ["4"]
 
 
+def test_models_trained_at_once_equal_those_trained_one_after_another(tmp_path):
+    """``RunConfig.train_jobs`` changes the wall clock only: CAPs and a baseline trained in threads at once are
+    bit for bit the models trained one after the other, and every stage's time is recorded."""
+    from tests.test_baselines import ENV, TRUNK, fast_transitions  # one-step windows with what Q-learning needs
+
+    model, env = capsjax.CAPsModel(dataclasses.replace(TRUNK, horizon=1)), ENV
+    sampler = types.SimpleNamespace(batches=lambda batch_size: lambda key: fast_transitions(key, batch_size))
+    preset = dataclasses.replace(forest.PRESETS["ci"], train_steps=6, baseline_steps=4, save_every=2, batch_size=8)
+    cfg = pipeline.RunConfig(preset="ci", progress=False)
+    trained = {}
+    for workers in (1, 0):
+        data_dir, timings = tmp_path / f"workers{workers}", {}
+        jobs = {"caps": lambda d=data_dir: pipeline.train_caps(forest.EXPERIMENT, preset, model, sampler, d, cfg),
+                "gc_dql": lambda d=data_dir: pipeline.train_baseline(forest.EXPERIMENT, preset, "gc_dql", model.config,
+                                                                     env, sampler, d, cfg)}
+        trained[workers] = pipeline.run_concurrently(jobs, workers, timings)
+        assert set(timings) == {"train_caps_s", "train_gc_dql_s", "train_s"}
+        assert int(trained[workers]["caps"].step) == 6
+    one_by_one, at_once = trained[1], trained[0]
+    np.testing.assert_array_equal(ravel_pytree(at_once["caps"].params)[0], ravel_pytree(one_by_one["caps"].params)[0])
+    np.testing.assert_array_equal(ravel_pytree(at_once["gc_dql"][1])[0], ravel_pytree(one_by_one["gc_dql"][1])[0])
+
+
+def test_a_failing_training_job_is_raised_after_the_others_finish():
+    finished = []
+
+    def slow():
+        import time
+        time.sleep(0.2)
+        finished.append("slow")
+        return 1
+
+    def bad():
+        raise pipeline.training.NonFiniteTrainingError("10 training steps in a row had a non-finite loss")
+
+    with pytest.raises(pipeline.training.NonFiniteTrainingError, match="non-finite"):
+        pipeline.run_concurrently({"slow": slow, "bad": bad}, 0, {})
+    assert finished == ["slow"]  # its checkpoints are saved for the rerun
+    assert pipeline.run_concurrently({}, 0, {}) == {}
+    for workers in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="train_jobs must be an int >= 0"):
+            pipeline.run_concurrently({"slow": slow}, workers, {})
+
+
 def test_forest_large_is_medium_with_more_caps_steps():
     # The README's `large` numbers were measured by continuing `medium`'s CAPs run on `medium`'s dataset;
     # that is only the same thing while the two presets differ in nothing but the CAPs step count.

@@ -436,11 +436,12 @@ def checkpointer(agent: BaselineAgent, train_cfg: training.TrainConfig, director
 
 def fit_offline(agent: BaselineAgent, train_cfg: training.TrainConfig, sample_batch: Callable, num_steps: int, *,
                 key=None, state: BaselineState | None = None, ckpt_dir=None, save_every: int = 1000, keep: int = 3,
-                metadata: dict | None = None):
+                metadata: dict | None = None, progress: bool | str = False):
     """Offline training to ``num_steps`` gradient steps in jitted chunks of up to ``save_every``, saved
     with orbax after each chunk and resumed from the latest checkpoint in ``ckpt_dir`` up to ``num_steps``
     (refused if it was written with other configs or ``metadata``, or trained past ``num_steps`` without
-    that step saved: ``Checkpointer.resume``, as in ``training.fit``)."""
+    that step saved: ``Checkpointer.resume``, as in ``training.fit``).  ``progress``: a tqdm bar of the steps,
+    labelled when it is a string (``training.progress_bar``)."""
     for name, value in (("num_steps", num_steps), ("save_every", save_every)):
         if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
             raise ValueError(f"fit_offline: {name} must be a positive int, got {value!r}")
@@ -448,12 +449,13 @@ def fit_offline(agent: BaselineAgent, train_cfg: training.TrainConfig, sample_ba
         state = init_state(agent, train_cfg, key if key is not None else jax.random.key(0))
     manager = (checkpointer(agent, train_cfg, ckpt_dir, metadata=metadata, save_every=save_every, keep=keep)
                if ckpt_dir else None)
-    trains, metrics = {}, {}
+    trains, metrics, bar = {}, {}, None
     try:
         if manager is not None:
             state, restored = manager.resume(state, num_steps, who="fit_offline")
             if restored is not None:
                 log.info("resumed baseline from step %d in %s", restored, ckpt_dir)
+        bar = training.progress_bar(progress, num_steps, int(state.step))
         while int(state.step) < num_steps:
             done = int(state.step)
             length = min(save_every - done % save_every, num_steps - done)
@@ -462,7 +464,12 @@ def fit_offline(agent: BaselineAgent, train_cfg: training.TrainConfig, sample_ba
             state, metrics = trains[length](state)
             if manager is not None:
                 manager.save(int(state.step), state, force=int(state.step) == num_steps)
+            if bar is not None:
+                bar.update(length)
+                bar.set_postfix(loss=float(metrics["loss"][-1]))
     finally:
+        if bar is not None:
+            bar.close()
         if manager is not None:
             manager.close()
     return state, metrics
