@@ -21,6 +21,7 @@ import dataclasses
 import json
 import logging
 import os
+import threading
 from typing import Any
 
 import jax
@@ -145,14 +146,24 @@ def abstract_state(target, sharding=None):
     return jax.tree.map(one, target)
 
 
+# Orbax keeps process-wide state for a save in flight (operation ids and the barrier keys derived from them,
+# temporary directory names).  Two managers saving at once from threads (models trained at once:
+# ``experiments.pipeline.run_concurrently``) collided: one save waited 300 s for a barrier key and failed, another
+# found a temporary directory not empty.  So the saves of a process run one at a time, each on disk before the
+# next starts: a process-wide lock guarding orbax's process-wide state (saving a model's state takes well under
+# a second, so training barely waits).
+_SAVE_LOCK = threading.Lock()
+
+
 class Checkpointer:
     """Save every ``save_every`` steps, keep the last ``keep``, restore the latest (or a given) step.
 
     ``config`` (a JSON-able dict, e.g. ``training_config(model, cfg)``) is stored with every step and
     must equal the saved one on restore; pass ``config=None`` to skip that check (e.g. to inspect a
     checkpoint of unknown origin).  ``defaults`` (``training_defaults``) fill fields that a config saved
-    by an older version lacks.  Use as a context manager, or call ``close()``, so pending
-    asynchronous saves finish.
+    by an older version lacks.  Use as a context manager, or call ``close()``.  A save is on disk when
+    ``save`` returns, and saves from several threads (several managers) run one after another
+    (``_SAVE_LOCK``); ``async_save`` chooses orbax's writer.
     """
 
     def __init__(self, directory, *, save_every: int = 1, keep: int | None = 3, config: dict | None = None,
@@ -189,14 +200,18 @@ class Checkpointer:
     def save(self, step: int, state, *, force: bool = False) -> bool:
         """Save ``state`` as ``step`` if it is a save step (a multiple of ``save_every``) or ``force``."""
         args = ocp.args.Composite(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(self.config or {}))
-        return self._manager.save(int(step), args=args, force=force)
+        with _SAVE_LOCK:
+            saved = self._manager.save(int(step), args=args, force=force)
+            self._manager.wait_until_finished()
+        return saved
 
     def wait(self) -> None:
         """Block until asynchronous saves are on disk."""
         self._manager.wait_until_finished()
 
     def close(self) -> None:
-        self._manager.close()
+        with _SAVE_LOCK:
+            self._manager.close()
 
     def saved_config(self, step: int) -> dict:
         try:

@@ -277,6 +277,38 @@ def test_keeps_the_last_k_and_saves_every_n(tmp_path):
         _manager(tmp_path / "empty").restore(state)
 
 
+def test_managers_saving_at_once_from_threads_all_finish(tmp_path):
+    """Models trained at once save from several threads; orbax's process-wide state for a save in flight made
+    such saves wait 300 s for a barrier and fail, before saves were serialised (``checkpoint._SAVE_LOCK``)."""
+    import threading
+
+    state = {"w": jnp.ones((256, 512)), "b": jnp.zeros((512,))}
+    start_together = threading.Barrier(3)
+    errors = []
+
+    def save_steps(name):
+        try:
+            with checkpoint.Checkpointer(tmp_path / name, keep=2) as manager:
+                for step in range(1, 5):
+                    start_together.wait(timeout=60)
+                    assert manager.save(step, jax.tree.map(lambda x: x + step, state))
+        except Exception as e:  # noqa: BLE001 (reported below, in the test's thread)
+            errors.append(e)
+
+    threads = [threading.Thread(target=save_steps, args=(name,), daemon=True) for name in "abc"]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=120)
+    assert not errors and not any(t.is_alive() for t in threads), (errors, [t.is_alive() for t in threads])
+    for name in "abc":
+        manager = checkpoint.Checkpointer(tmp_path / name, keep=2)
+        assert manager.all_steps() == [3, 4]
+        restored, step = manager.restore(state)
+        assert step == 4
+        np.testing.assert_array_equal(restored["w"], state["w"] + 4)
+
+
 def _train_main(ckpt_dir: str, num_steps: int, out: str) -> None:
     start = time.time()
     logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(message)s", force=True)
