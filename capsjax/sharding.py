@@ -81,23 +81,26 @@ def replicate(tree, mesh: Mesh):
     return jax.device_put(tree, replicated_sharding(mesh))
 
 
-@functools.partial(jax.jit, static_argnames=("env", "policy", "num_steps", "update_spec", "spec_per_robot"))
-def _run_episodes(env, policy, params, spec, tasks, keys, *, num_steps, update_spec, spec_per_robot):
-    one = functools.partial(mpc.run_episode, env, policy, num_steps=num_steps, update_spec=update_spec)
+@functools.partial(jax.jit, static_argnames=("env", "policy", "num_steps", "update_spec", "spec_per_robot",
+                                             "record_images"))
+def _run_episodes(env, policy, params, spec, tasks, keys, *, num_steps, update_spec, spec_per_robot, record_images):
+    one = functools.partial(mpc.run_episode, env, policy, num_steps=num_steps, update_spec=update_spec,
+                            record_images=record_images)
     return jax.vmap(one, in_axes=(None, 0 if spec_per_robot else None, 0, 0))(params, spec, tasks, keys)
 
 
 def run_episodes(env, policy: mpc.Policy, params, spec, tasks, keys, *, num_steps: int,
-                 mesh: Mesh | None = None, update_spec=None) -> mpc.Trajectory:
+                 mesh: Mesh | None = None, update_spec=None, record_images: bool = False) -> mpc.Trajectory:
     """``mpc.run_episode`` for many robots, the robot axis sharded over ``mesh`` (all devices by default).
 
     ``tasks`` and ``keys`` have a leading robot axis; ``spec`` is either one ``RewardSpec`` shared by all
     robots or one per robot (weights ``f32[R, K]``).  The number of robots must be a multiple of the
-    mesh size.  Returns the ``Trajectory`` with leading axes ``[R, T]``, sharded like the robots.
+    mesh size.  Returns the ``Trajectory`` with leading axes ``[R, T]``, sharded like the robots
+    (``record_images``: with every robot's camera frames, as ``mpc.run_episode``).
     """
     mesh = mesh if mesh is not None else make_mesh()
     spec_per_robot = spec.weights.ndim == 2
     tasks, keys = shard_robots((tasks, keys), mesh)
     spec = shard_robots(spec, mesh) if spec_per_robot else replicate(spec, mesh)
     return _run_episodes(env, policy, replicate(params, mesh), spec, tasks, keys, num_steps=num_steps,
-                         update_spec=update_spec, spec_per_robot=spec_per_robot)
+                         update_spec=update_spec, spec_per_robot=spec_per_robot, record_images=record_images)

@@ -369,7 +369,7 @@ def test_checkpoints_trained_on_other_windows_are_refused_not_resumed(tmp_path):
 
 
 def test_models_trained_at_once_equal_those_trained_one_after_another(tmp_path):
-    """``RunConfig.train_jobs`` changes the wall clock only: CAPs and a baseline trained in threads at once are
+    """``RunConfig.jobs`` changes the wall clock only: CAPs and a baseline trained in threads at once are
     bit for bit the models trained one after the other, and every stage's time is recorded."""
     from tests.test_baselines import ENV, TRUNK, fast_transitions  # one-step windows with what Q-learning needs
 
@@ -408,7 +408,7 @@ def test_a_failing_training_job_is_raised_after_the_others_finish():
     assert finished == ["slow"]  # its checkpoints are saved for the rerun
     assert pipeline.run_concurrently({}, 0, {}) == {}
     for workers in (-1, 1.5, True):
-        with pytest.raises(ValueError, match="train_jobs must be an int >= 0"):
+        with pytest.raises(ValueError, match="jobs must be an int >= 0"):
             pipeline.run_concurrently({"slow": slow}, workers, {})
 
 
