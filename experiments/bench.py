@@ -20,7 +20,7 @@ import jax
 
 from experiments import runtime
 
-BENCHMARKS = ("planner", "envs", "collect", "scale")
+BENCHMARKS = ("planner", "envs", "collect", "scale", "jobs")
 
 
 def device_context() -> dict:

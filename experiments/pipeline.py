@@ -226,8 +226,9 @@ class RunConfig:
     """Jobs run at once, in threads: the models that train on the same data (CAPs, the baselines), then the
     evaluation of the CAPs rewards beside the baselines' (0: all at once; 1: one after another).  The models and
     results are the same either way; at once is faster where one job leaves cores idle (XLA:CPU runs a
-    convolution on one core).  On the forest's `small`, 2-core CPU: 2 at once trained 1.42x as fast as one
-    after another, 3 at once 1.59x while all three ran, but CAPs, the longest, then ran on alone."""
+    convolution on one core).  The forest's `small` models on a 2-core CPU (``python -m experiments.bench jobs``):
+    2 at once trained 1.47x as fast as one after another, 3 at once 1.61x while all three ran, but in a whole
+    run CAPs, the longest, then trained on alone."""
     smoke: bool = False
     """Smoke test of the preset: its model, horizon, planner and training settings at the 'ci' preset's data
     sizes and step counts, so every stage runs in minutes (check ``--preset paper`` before a long GPU run).

@@ -13,7 +13,7 @@ from experiments.benchmarks import envs as env_bench
 
 
 def test_unknown_benchmark_names_the_choices():
-    with pytest.raises(SystemExit, match="planner, envs, collect, scale"):
+    with pytest.raises(SystemExit, match="planner, envs, collect, scale, jobs"):
         bench.main(["nope"])
 
 
@@ -50,3 +50,14 @@ def test_ray_batch_larger_than_the_render_batch_is_refused(capsys):
     with pytest.raises(SystemExit):
         env_bench.main(["--ray-batch", "8", "--render-batch", "4", "--host-devices", "1"])
     assert "--ray-batch must be in [1, --render-batch = 4], got 8" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_jobs_benchmark_prints_the_alone_rates_and_the_same_run_speedups():
+    out = subprocess.run([sys.executable, "-m", "experiments.bench", "jobs", "--steps", "2", "--collect-steps", "2000"],
+                         capture_output=True, text=True, check=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
+    figures = {line["metric"]: line for line in map(json.loads, filter(lambda s: s.startswith("{"), out.stdout.splitlines()))}
+    assert set(figures) == {"jobs.steps_per_s.caps", "jobs.steps_per_s.gc_dql", "jobs.steps_per_s.gc_dql_sep",
+                            "jobs.seconds.caps_gc_dql_at_once", "jobs.speedup.caps_gc_dql_at_once",
+                            "jobs.seconds.caps_gc_dql_gc_dql_sep_at_once", "jobs.speedup.caps_gc_dql_gc_dql_sep_at_once"}
+    assert all(line["value"] > 0 and line["steps"] == 2 for line in figures.values())
