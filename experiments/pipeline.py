@@ -224,7 +224,8 @@ class RunConfig:
     """Progress bars for every long stage."""
     jobs: int = 2
     """Jobs run at once, in threads: the models that train on the same data (CAPs, the baselines), then the
-    evaluation of the CAPs rewards beside the baselines' (0: all at once; 1: one after another).  The models and
+    evaluations, each method a job, the first CAPs reward (which compiles the program every CAPs reward shares)
+    before the other CAPs rewards (0: all at once; 1: one after another).  The models and
     results are the same either way; at once is faster where one job leaves cores idle (XLA:CPU runs a
     convolution on one core).  The forest's `small` models on a 2-core CPU (``python -m experiments.bench jobs``):
     2 at once trained 1.47x as fast as one after another, 3 at once 1.61x while all three ran, but in a whole
@@ -620,36 +621,37 @@ def run(exp: Experiment, presets: Mapping[str, Preset], cfg: RunConfig) -> dict:
                 baselines.baseline_policy(agents[kind], cem_config(preset, env, horizon=1))
                 for kind in {m.kind for m in methods}}
 
-    def evaluate_in_turn(group: list[Method]) -> None:
-        for method in group:
-            t = time.time()
-            cache = run_dir / "eval" / f"{method.name}.npz"
-            key = eval_cache_key(method, preset, data_dir, cfg.split, env, params[method.kind])
-            cached = _load_eval(cache, key)
-            if cached is not None:
-                poses[method.name], per_episode[method.name] = cached
-                per_episode[method.name].update(task_metrics(exp, tasks, env, per_episode[method.name]))
-                log(exp, f"eval {method.name}: reused {cache}")
-                continue
-            # Every CAPs method keeps its camera frames (the GIF's), so that all share one compiled program.
-            traj = jax.device_get(evaluate(exp, preset, env, method, policies[method.kind], params[method.kind],
-                                           method_spec(method, caps_model), tasks, cfg.seed,
-                                           record_images=method.kind == "caps"))
-            if method.kind == "caps":
-                fpv[method.name] = first_episode(traj)
-            poses[method.name] = np.asarray(traj.pose)
-            episodes = {k: np.asarray(v) for k, v in exp.episode_metrics(traj, env).items()}
-            _save_eval(cache, key, poses[method.name], episodes)
-            per_episode[method.name] = episodes | task_metrics(exp, tasks, env, episodes)
-            timings[f"eval_{method.name}_s"] = time.time() - t
-            log(exp, f"eval {method.name}: " + ", ".join(f"{k} {np.nanmean(v):.3f}" for k, v in per_episode[method.name].items())
-                + f" ({timings[f'eval_{method.name}_s']:.0f} s)")
+    def evaluate_method(method: Method) -> None:
+        t = time.time()
+        cache = run_dir / "eval" / f"{method.name}.npz"
+        key = eval_cache_key(method, preset, data_dir, cfg.split, env, params[method.kind])
+        cached = _load_eval(cache, key)
+        if cached is not None:
+            poses[method.name], per_episode[method.name] = cached
+            per_episode[method.name].update(task_metrics(exp, tasks, env, per_episode[method.name]))
+            log(exp, f"eval {method.name}: reused {cache}")
+            return
+        # Every CAPs method keeps its camera frames (the GIF's), so that all share one compiled program.
+        traj = jax.device_get(evaluate(exp, preset, env, method, policies[method.kind], params[method.kind],
+                                       method_spec(method, caps_model), tasks, cfg.seed,
+                                       record_images=method.kind == "caps"))
+        if method.kind == "caps":
+            fpv[method.name] = first_episode(traj)
+        poses[method.name] = np.asarray(traj.pose)
+        episodes = {k: np.asarray(v) for k, v in exp.episode_metrics(traj, env).items()}
+        _save_eval(cache, key, poses[method.name], episodes)
+        per_episode[method.name] = episodes | task_metrics(exp, tasks, env, episodes)
+        log(exp, f"eval {method.name}: " + ", ".join(f"{k} {np.nanmean(v):.3f}" for k, v in per_episode[method.name].items())
+            + f" ({time.time() - t:.0f} s)")
 
-    # The CAPs rewards one after another (one compile), beside the baselines (their compiles run on one core).
-    groups = {"caps_methods": [m for m in methods if m.kind == "caps"],
-              "baseline_methods": [m for m in methods if m.kind != "caps"]}
-    run_concurrently({name: functools.partial(evaluate_in_turn, group) for name, group in groups.items() if group},
-                     cfg.jobs, timings, stage="eval")
+    # ``cfg.jobs`` evaluations at once, each method a job timed as ``eval_<method>_s``.  The first CAPs reward
+    # goes alone among the CAPs rewards: it compiles the program they all share (``policies``), and the others
+    # wait for it rather than compile it again; meanwhile the baselines run (their compiles take one core).
+    caps_methods = [m for m in methods if m.kind == "caps"]
+    first = caps_methods[:1] + [m for m in methods if m.kind != "caps"]
+    for stage_methods in (first, caps_methods[1:]):
+        run_concurrently({m.name: functools.partial(evaluate_method, m) for m in stage_methods}, cfg.jobs, timings,
+                         stage="eval")
     per_episode = {m.name: per_episode[m.name] for m in methods}  # the experiment's order, whichever ended first
     poses = {m.name: poses[m.name] for m in methods}
 

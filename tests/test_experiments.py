@@ -412,8 +412,24 @@ def test_a_failing_training_job_is_raised_after_the_others_finish():
             pipeline.run_concurrently({"slow": slow}, workers, {})
 
 
+@pytest.mark.slow
+def test_methods_evaluated_at_once_equal_those_evaluated_one_after_another(tmp_path):
+    """``RunConfig.jobs`` changes the evaluation's wall clock only: the CAPs rewards (after the first, which
+    compiles their shared program) and the baselines evaluated in threads give every episode as one after
+    another does, and each method's time is recorded."""
+    methods = ("caps", "caps_2ms", "caps_path", "gc_dql")
+    runs = {}
+    for jobs in (1, 2):
+        cfg = pipeline.RunConfig(preset="ci", out=tmp_path / f"jobs{jobs}", data_dir=tmp_path / "data",
+                                 methods=methods, progress=False, jobs=jobs)
+        runs[jobs] = forest.main(cfg)  # the second run reuses the first's dataset and models
+        assert {f"eval_{m}_s" for m in methods} | {"eval_s"} <= set(runs[jobs]["timings_s"])
+    np.testing.assert_equal(runs[2]["per_episode"], runs[1]["per_episode"])  # NaN (no drivable path) equals NaN
+    np.testing.assert_equal(runs[2]["metrics"], runs[1]["metrics"])
+
+
 def test_forest_large_is_medium_with_more_caps_steps():
-    # The README's `large` numbers were measured by continuing `medium`'s CAPs run on `medium`'s dataset;
+    # The `large` numbers in docs/forest.md were measured by continuing `medium`'s CAPs run on `medium`'s dataset;
     # that is only the same thing while the two presets differ in nothing but the CAPs step count.
     medium, large = forest.PRESETS["medium"], forest.PRESETS["large"]
     assert large.train_steps == 2 * medium.train_steps
