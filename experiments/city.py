@@ -31,7 +31,7 @@ SMALL = Preset(collect_steps=60_000, collect_robots=64, episode_length=200, trai
 PRESETS = {
     "ci": pipeline.ci_preset(),
     "small": SMALL,
-    # `small` plus the on-policy stage (chosen on 'val', README): random actions rarely reach 7 m/s, so 16k
+    # `small` plus the on-policy stage (chosen on 'val', docs/city.md): random actions rarely reach 7 m/s, so 16k
     # CAPs steps on them, 16k steps driven by that model on training goals, then 8k more on both datasets.
     # ~10 minutes longer than `small`, hence a preset of its own rather than the 30-minute default.
     "small_onpolicy": dataclasses.replace(SMALL, train_steps=16_000, onpolicy_steps=16_000,

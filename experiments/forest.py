@@ -52,7 +52,7 @@ PRESETS = {
     # the mean of the elites nearest the best ('local_mean') 67 % (23 + 20 of 64), the elite mean 58 %
     # (22 + 15), the best sample 48 % (15 + 16).  Every crash of the elite mean there was into the arena's
     # walls, foreseen steps ahead: facing a wall, turning left and turning right are both good plans and
-    # their mean is the straight one (README).  A wider steering box (+-45 degrees in collection and
+    # their mean is the straight one (docs/forest.md).  A wider steering box (+-45 degrees in collection and
     # planning, for tighter turns) gave a worse model (held-out collision loss 0.153 against 0.102) and
     # 38 % against 72 % on val seed 0.
     # Then (2026-12-06, an AVX-512 host, the same 64 'val' paths and model): CEM refitting each iteration's
@@ -62,7 +62,7 @@ PRESETS = {
     # over the 20k steps (``lr_decay``) from 5e-4, 67 % (23 + 20; held-out collision loss 0.099 against
     # 0.102), and from 1e-3, 59 % (20 + 18; 0.115).  With the local refit, 64 elites instead of 32 (so the
     # refit's 32 points span all 24 plan dimensions): 61 % (20 + 19), 2026-12-06.
-    # The baselines keep 10k steps each: 20k (equal steps, measured once: README) takes the run to
+    # The baselines keep 10k steps each: 20k (equal steps, measured once: docs/forest.md) takes the run to
     # ~34 minutes, over the `small` budget.  Also tried on 'val', and worse: twice the data (120k steps,
     # 56 %) and the paper's horizon H = 16 (38 %); a 4th CEM iteration (56 %), 16 elites (53 %), 512
     # samples (47 %); random actions held 4 steps on average in collection (59 %); over 64 'val' paths
@@ -71,14 +71,14 @@ PRESETS = {
     # The planner's own noise there: two other planner keys gave 59 % and 56 % (key 0: 66 %).
     # Also on 128 'val' paths (2026-12-06, an AVX-512 host, evaluation only): collision risk below 0.05 per step
     # left free, -13 points; plans within 0.05 summed risk of the population's safest ranked by heading alone,
-    # -10 points (-5.5 with the speed held near 1 m/s): fewer wall crashes, many more tree crashes (README).
+    # -10 points (-5.5 with the speed held near 1 m/s): fewer wall crashes, many more tree crashes (docs/forest.md).
     # Retrained with three training seeds (2026-12-06, 384 paired 'val' paths): episodes starting anywhere,
     # -4.9 points [-11.7, +1.8], as many wall crashes; random actions held 2 steps, -22 [-32, -12] on one seed.
     # Half of the training windows mirrored left-right (``mirror``; the forest has no handedness), chosen
     # on 64 'val' paths on one host (2026-12-04): success 45 % -> 55 %, held-out collision loss 0.141 ->
     # 0.105, at no cost in time.  The same settings without mirroring gave 64 % on 'val' on the host of
     # 2026-12-02: hosts differ by as much as settings do, so compare only runs of one host.  Measured
-    # afterwards on 'eval' (README): 48 % mirrored vs 58 % unmirrored, 52 % each over 'val' and 'eval'.
+    # afterwards on 'eval' (docs/forest.md): 48 % mirrored vs 58 % unmirrored, 52 % each over 'val' and 'eval'.
     # Tried on 'val' (2026-12-06, an AVX-512 host; rule: a paired success interval above zero) and not adopted:
     # 8 frames of memory (env ``history=8``, retrained on the same dataset): 31 of 64 paths against 49, paired
     # -28 points [-42, -14], held-out collision loss 0.126 against 0.102; the pursuit point 3 or 4 m ahead
@@ -99,7 +99,7 @@ PRESETS = {
     # measured after 6 m was adopted, so nothing chosen here): 'val' 88 % (2 m on the same model 67 %), then
     # 'eval' 81 % (52 of 64; 2 m 44 %).  A second training run: 'eval' 53 % (34 of 64); 67 % over both.
     # Most of that run's failures were side hits: obstacles 76-107 degrees off the heading, outside the camera's
-    # 120 degrees, struck while turning back to the path after passing them (README).  Hence the 8 m point above:
+    # 120 degrees, struck while turning back to the path after passing them (docs/forest.md).  Hence the 8 m point above:
     # 'eval' 83 % and 67 % with these two runs, 89 % with a third (trained after the choice); 80 % over the three.
     "medium": MEDIUM,
     # `medium`'s data (the same dataset: same collection settings and seed) with twice its CAPs steps; the

@@ -45,10 +45,10 @@ PRESETS = {
     "small": SMALL,
     # `small` plus the on-policy stage driven by the collision + heading reward on the training loop
     # (counter-clockwise): the car's own corner turns, and its crashes on them, enter the data.  Chosen on
-    # 'val' (16 loops, one host without AVX-512, README): paper reward no crash 0 % (`small`), 0 % (on-policy
+    # 'val' (16 loops, one host without AVX-512, docs/indoor.md): paper reward no crash 0 % (`small`), 0 % (on-policy
     # on the collision reward), 44 % (this); 12k CAPs steps in all, as `small` at 12k (also 0 %).
     # The planner's local mean ('local_mean', which never averages a left and a right turn into a straight
-    # one) was tried here and not kept (an AVX-512 host, 2026-12-05, README).  At evaluation only, with this
+    # one) was tried here and not kept (an AVX-512 host, 2026-12-05, docs/indoor.md).  At evaluation only, with this
     # preset's model, it looked better on 16 'val' loops (loops without a crash, elite mean -> local mean:
     # caps_heading 15 -> 16, caps_heading_door_x4 14 -> 15).  But the preset's on-policy stage plans with the
     # same return mode, so adopting it retrains the model.  The retrained preset on val seed 0 gave
@@ -69,12 +69,12 @@ GATED = ("heading_angle", "door")
 # Re-checked with the current model on 16 'val' loops: no door term 4.0 %, 94 %, 81 %; 0.05 3.9 %, 97 %,
 # 94 %; 0.1 3.9 %, 93 %, 81 %; 0.2 5.2 % (+31 %), 98 %, 94 %: 0.2 stays.
 # On an AVX-512 host with the small_onpolicy model (16 'val' loops; door share vs no door term, no crash):
-# 0.05 +7 %, 14/16; 0.1 +13 %, 16/16; 0.2 +65 %, 14/16 (none: 15/16): 0.2 stays (README).
+# 0.05 +7 %, 14/16; 0.1 +13 %, 16/16; 0.2 +65 %, 14/16 (none: 15/16): 0.2 stays (docs/indoor.md).
 DOOR_WEIGHT = 0.2
 # On an AVX-512 host door 0.2 crashes more (2026-12-06, the small_onpolicy model, 32 'val' loops: 24 of 32
 # without a crash).  Chosen there on 'val' with the rule set before the run (at least 26 of 32 without a crash
 # and the door share at least +17 % over collision + heading): 0.15 gave 29 of 32 and +54 % [+44, +67]
-# (README).  Hosts differ, so both weights are evaluated.
+# (docs/indoor.md).  Hosts differ, so both weights are evaluated.
 DOOR_WEIGHT_LOW = 0.15
 # The paper's heading weight 0.1 is worth at most 0.1 per step between the commanded corridor and the
 # opposite one, less than the collision model's doubts about a turn it cannot yet see round: on the
