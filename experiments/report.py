@@ -227,6 +227,12 @@ def plot_trajectories(path: Path, panels: Sequence[dict], *, title: str = "") ->
     plt.close(fig)
 
 
+def _padded(lo: float, hi: float, fraction: float) -> tuple[float, float]:
+    """Axis limits ``fraction`` of the range beyond ``lo`` and ``hi`` (at least a small width when they are equal)."""
+    pad = fraction * max(hi - lo, 1e-3)
+    return lo - pad, hi + pad
+
+
 def write_fpv_gif(path: Path, images: np.ndarray, preds: Mapping[str, np.ndarray], signals: Mapping[str, np.ndarray],
                   *, fps: int = 4, title: str = "") -> None:
     """A first-person GIF: the camera frame of each step beside the chosen plan's predicted cues over the
@@ -239,7 +245,7 @@ def write_fpv_gif(path: Path, images: np.ndarray, preds: Mapping[str, np.ndarray
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.animation import FuncAnimation, PillowWriter
+    from PIL import Image
 
     images = np.asarray(images)
     shown = {}
@@ -250,26 +256,46 @@ def write_fpv_gif(path: Path, images: np.ndarray, preds: Mapping[str, np.ndarray
     fig, axes = plt.subplots(1, 1 + len(names), figsize=(3.2 * (1 + len(names)), 3.0))
     axes = np.atleast_1d(axes)
     gray = images.shape[-1] == 1
+    frames = images[..., 0] if gray else images
 
-    def draw(t):
-        for ax in axes:
-            ax.clear()
-        axes[0].imshow(images[t, ..., 0] if gray else images[t], cmap="gray" if gray else None, vmin=0, vmax=255)
-        axes[0].set_title(f"{title} step {t}", fontsize=8)
-        axes[0].axis("off")
-        for ax, name in zip(axes[1:], names):
-            horizon = shown[name].shape[1]
-            ax.plot(np.arange(1, horizon + 1), shown[name][t], "-", color="tab:blue", label="predicted")
-            truth = np.asarray(signals.get(name, np.full(len(images), np.nan)))
-            future = truth[t:t + horizon]  # signals[t] is the state after step t: the first predicted step
-            ax.plot(np.arange(1, len(future) + 1), future, "o", ms=3, color="tab:orange", label="true")
-            ax.set_title(name, fontsize=8)
-            ax.set_xlabel("steps ahead", fontsize=7)
-            lo, hi = np.nanmin(shown[name]), np.nanmax(shown[name])
-            pad = 0.1 * max(hi - lo, 1e-3)
-            ax.set_ylim(lo - pad, hi + pad)
-            ax.legend(fontsize=6, loc="upper right")
+    # Blitting: the axes, ticks and legends are drawn once and each frame redraws only the artists that move.
+    # Redrawing the whole figure per frame (matplotlib's animation writers) made a long halls episode's GIF
+    # take minutes, the axes' ticks most of it.
+    camera = axes[0].imshow(frames[0], cmap="gray" if gray else None, vmin=0, vmax=255, animated=True)
+    caption = axes[0].set_title("", fontsize=8, animated=True)
+    axes[0].axis("off")
+    curves, moving = [], [camera, caption]
+    for ax, name in zip(axes[1:], names):
+        horizon = shown[name].shape[1]
+        predicted, = ax.plot(np.arange(1, horizon + 1), shown[name][0], "-", color="tab:blue", label="predicted",
+                             animated=True)
+        true, = ax.plot([], [], "o", ms=3, color="tab:orange", label="true", animated=True)
+        ax.set_xlim(*_padded(1, horizon, 0.05))
+        ax.set_ylim(*_padded(np.nanmin(shown[name]), np.nanmax(shown[name]), 0.1))
+        ax.set_title(name, fontsize=8)
+        ax.set_xlabel("steps ahead", fontsize=7)
+        legend = ax.legend(fontsize=6, loc="upper right")
+        legend.set_animated(True)  # drawn after the lines each frame, so it stays on top of them
+        truth = np.asarray(signals.get(name, np.full(len(images), np.nan)))
+        curves.append((shown[name], truth, predicted, true))
+        moving += [predicted, true, legend]
 
-    anim = FuncAnimation(fig, draw, frames=len(images))
-    anim.save(str(path), writer=PillowWriter(fps=fps))
+    fig.tight_layout()  # room for the axis labels
+    canvas = fig.canvas
+    canvas.draw()  # everything but the animated artists
+    background = canvas.copy_from_bbox(fig.bbox)
+    gif_frames = []
+    for t in range(len(images)):
+        camera.set_data(frames[t])
+        caption.set_text(f"{title} step {t}")
+        for pred, truth, predicted, true in curves:
+            predicted.set_ydata(pred[t])
+            future = truth[t:t + pred.shape[1]]  # truth[t] is the state after step t: the first predicted step
+            true.set_data(np.arange(1, len(future) + 1), future)
+        canvas.restore_region(background)
+        for artist in moving:
+            fig.draw_artist(artist)
+        # RGB, not RGBA: the figure is opaque, and Pillow maps RGB to the GIF's palette with less banding.
+        gif_frames.append(Image.fromarray(np.array(canvas.buffer_rgba())[..., :3]))
+    gif_frames[0].save(path, save_all=True, append_images=gif_frames[1:], duration=int(1000 / fps), loop=0)
     plt.close(fig)
